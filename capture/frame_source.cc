@@ -1,5 +1,7 @@
 #include "capture/frame_source.h"
 
+#include "capture/frame_server.h"
+
 #include <algorithm>
 #include <cctype>
 #include <cmath>
@@ -37,6 +39,7 @@ struct Registry {
     factories["libcamera"] = &OpenLibcameraFrameSource;
     factories["v4l2"] = &OpenV4l2FrameSource;
     factories["replay"] = &OpenReplayFrameSource;
+    factories["socket"] = &OpenSocketFrameSource;
   }
 };
 

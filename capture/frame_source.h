@@ -159,7 +159,7 @@ using FrameSourceFactory =
 bool RegisterFrameSourceFactory(const std::string& scheme, FrameSourceFactory factory);
 // Removes a scheme; returns false if it was not registered.
 bool UnregisterFrameSourceFactory(const std::string& scheme);
-// Registered schemes, sorted (built-ins: "libcamera", "replay", "v4l2").
+// Registered schemes, sorted (built-ins: "libcamera", "replay", "socket", "v4l2").
 std::vector<std::string> FrameSourceSchemes();
 
 // Opens the source named by `uri` with `controls` (checked first: std::invalid_argument if
