@@ -1,0 +1,88 @@
+#include "capture/impression.h"
+
+#include <stdexcept>
+#include <string>
+
+#include <opencv2/imgproc.hpp>
+
+namespace gs360 {
+
+void ImpressionOptions::Check() const {
+  if (!(blur_sigma_px >= 0.0)) {
+    throw std::invalid_argument("ImpressionOptions.blur_sigma_px must be >= 0, got " +
+                                std::to_string(blur_sigma_px));
+  }
+  if (!(min_peak_dn > 0.0)) {
+    throw std::invalid_argument("ImpressionOptions.min_peak_dn must be > 0, got " +
+                                std::to_string(min_peak_dn));
+  }
+  if (!(threshold_fraction > 0.0 && threshold_fraction < 1.0)) {
+    throw std::invalid_argument("ImpressionOptions.threshold_fraction must be in (0, 1), got " +
+                                std::to_string(threshold_fraction));
+  }
+}
+
+std::optional<Impression> FindImpression(const cv::Mat& press, const cv::Mat& reference,
+                                         const ImpressionOptions& options, const cv::Mat& mask) {
+  options.Check();
+  if (press.type() != CV_8UC3 || reference.type() != CV_8UC3 || press.size() != reference.size()) {
+    throw std::invalid_argument("FindImpression: press and reference must be CV_8UC3 of one size");
+  }
+  if (!mask.empty() && (mask.type() != CV_8U || mask.size() != press.size())) {
+    throw std::invalid_argument("FindImpression: mask must be CV_8U of the image size");
+  }
+  cv::Mat p, r;
+  press.convertTo(p, CV_32FC3);
+  reference.convertTo(r, CV_32FC3);
+  cv::Mat diff = p - r;
+  cv::Mat sq;
+  cv::multiply(diff, diff, sq);
+  cv::Mat magnitude = sq.reshape(1, static_cast<int>(sq.total())).clone();
+  cv::reduce(magnitude, magnitude, 1, cv::REDUCE_SUM);
+  magnitude = magnitude.reshape(1, press.rows);
+  cv::sqrt(magnitude, magnitude);
+  if (!mask.empty()) magnitude.setTo(0.0f, mask == 0);
+  if (options.blur_sigma_px > 0.0) {
+    cv::GaussianBlur(magnitude, magnitude, cv::Size(), options.blur_sigma_px);
+  }
+  double peak = 0.0;
+  cv::Point peak_at;
+  cv::minMaxLoc(magnitude, nullptr, &peak, nullptr, &peak_at);
+  if (peak < options.min_peak_dn) return std::nullopt;
+
+  // The blob is the connected region above the threshold that contains the peak: a second,
+  // unrelated change elsewhere (LED drift, a speck) does not pull the centroid.
+  const float threshold = static_cast<float>(options.threshold_fraction * peak);
+  cv::Mat above = magnitude > threshold;
+  cv::Mat labels;
+  cv::connectedComponents(above, labels, 8, CV_32S);
+  const int label = labels.at<int>(peak_at);
+  double sw = 0.0, su = 0.0, sv = 0.0;
+  int count = 0;
+  int u0 = press.cols, v0 = press.rows, u1 = -1, v1 = -1;
+  for (int v = 0; v < labels.rows; ++v) {
+    const int* lrow = labels.ptr<int>(v);
+    const float* mrow = magnitude.ptr<float>(v);
+    for (int u = 0; u < labels.cols; ++u) {
+      if (lrow[u] != label) continue;
+      const double w = mrow[u] - threshold;
+      sw += w;
+      su += w * u;
+      sv += w * v;
+      ++count;
+      u0 = std::min(u0, u);
+      v0 = std::min(v0, v);
+      u1 = std::max(u1, u);
+      v1 = std::max(v1, v);
+    }
+  }
+  if (sw <= 0.0) return std::nullopt;
+  Impression out;
+  out.centroid = Eigen::Vector2d(su / sw, sv / sw);
+  out.peak_dn = peak;
+  out.pixels = count;
+  out.box = cv::Rect(u0, v0, u1 - u0 + 1, v1 - v0 + 1);
+  return out;
+}
+
+}  // namespace gs360

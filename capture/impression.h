@@ -1,0 +1,34 @@
+#pragma once
+// Where a press shows in the image: the blob of the difference between a press frame and a
+// no-contact reference frame. Used by resume (has the sensor moved?) and by calibration (the
+// impression centres that pose estimation fits).
+
+#include <Eigen/Core>
+#include <optional>
+
+#include <opencv2/core/mat.hpp>
+
+namespace gs360 {
+
+struct ImpressionOptions {
+  double blur_sigma_px = 2.0;      // Gaussian blur of the difference magnitude (noise)
+  double min_peak_dn = 6.0;        // weaker peaks are "no impression" (DN, 8-bit scale)
+  double threshold_fraction = 0.35;  // blob = connected pixels above this fraction of the peak
+  void Check() const;              // throws std::invalid_argument naming the field and value
+};
+
+struct Impression {
+  Eigen::Vector2d centroid = Eigen::Vector2d::Zero();  // pixels (u right, v down), weighted
+  double peak_dn = 0.0;  // peak of the blurred colour-difference magnitude
+  int pixels = 0;        // blob area
+  cv::Rect box;          // blob bounding box
+};
+
+// `press` and `reference`: CV_8UC3 of equal size (std::invalid_argument otherwise). Optional
+// `mask` (CV_8U, non-zero = usable pixel, e.g. not behind a fin). Returns nullopt when no blob
+// reaches min_peak_dn: no contact visible.
+std::optional<Impression> FindImpression(const cv::Mat& press, const cv::Mat& reference,
+                                         const ImpressionOptions& options = {},
+                                         const cv::Mat& mask = cv::Mat());
+
+}  // namespace gs360
