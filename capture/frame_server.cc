@@ -70,7 +70,7 @@ FrameServer::FrameServer(std::filesystem::path socket_path, Producer producer)
     : path_(std::move(socket_path)), producer_(std::move(producer)) {
   if (!producer_) throw std::invalid_argument("FrameServer: empty producer");
   const sockaddr_un addr = MakeAddress(path_);
-  struct stat st{};
+  struct stat st {};
   if (::lstat(path_.c_str(), &st) == 0) {
     if (!S_ISSOCK(st.st_mode)) {
       throw std::runtime_error("frame socket path exists and is not a socket: " + path_.string());
@@ -159,9 +159,9 @@ void FrameServer::Serve(int fd) {
       header.height = frame.image.rows;
       header.cv_type = frame.image.type();
       header.sequence = frame.sequence;
-      header.timestamp_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(
-                                frame.timestamp.time_since_epoch())
-                                .count();
+      header.timestamp_ns =
+          std::chrono::duration_cast<std::chrono::nanoseconds>(frame.timestamp.time_since_epoch())
+              .count();
       header.exposure_us = frame.exposure.count();
       header.payload_bytes = frame.image.total() * frame.image.elemSize();
       ok = WriteAll(fd, &header, sizeof(header)) &&

@@ -11,10 +11,10 @@
 namespace gs360 {
 
 struct ImpressionOptions {
-  double blur_sigma_px = 2.0;      // Gaussian blur of the difference magnitude (noise)
-  double min_peak_dn = 6.0;        // weaker peaks are "no impression" (DN, 8-bit scale)
+  double blur_sigma_px = 2.0;        // Gaussian blur of the difference magnitude (noise)
+  double min_peak_dn = 6.0;          // weaker peaks are "no impression" (DN, 8-bit scale)
   double threshold_fraction = 0.35;  // blob = connected pixels above this fraction of the peak
-  void Check() const;              // throws std::invalid_argument naming the field and value
+  void Check() const;                // throws std::invalid_argument naming the field and value
 };
 
 struct Impression {

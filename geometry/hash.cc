@@ -42,9 +42,13 @@ Hasher& Hasher::AddDouble(double v) {
   return Add(&v, sizeof(v));
 }
 
-std::uint64_t Hasher::Digest() const { return Mix(state_ ^ length_); }
+std::uint64_t Hasher::Digest() const {
+  return Mix(state_ ^ length_);
+}
 
-std::string Hasher::Hex() const { return ToHex64(Digest()); }
+std::string Hasher::Hex() const {
+  return ToHex64(Digest());
+}
 
 std::string ToHex64(std::uint64_t v) {
   static constexpr char kDigits[] = "0123456789abcdef";
@@ -53,6 +57,8 @@ std::string ToHex64(std::uint64_t v) {
   return s;
 }
 
-std::string HashHex(const void* data, std::size_t size) { return Hasher().Add(data, size).Hex(); }
+std::string HashHex(const void* data, std::size_t size) {
+  return Hasher().Add(data, size).Hex();
+}
 
 }  // namespace gs360

@@ -20,10 +20,7 @@ class Hasher {
   // give equal keys.
   Hasher& AddDouble(double v);
   template <typename T>
-    requires std::is_trivially_copyable_v<T>
-  Hasher& AddPod(const T& v) {
-    return Add(&v, sizeof(T));
-  }
+  requires std::is_trivially_copyable_v<T> Hasher& AddPod(const T& v) { return Add(&v, sizeof(T)); }
 
   std::uint64_t Digest() const;
   // 16 lower-case hex digits.

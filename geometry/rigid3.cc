@@ -6,7 +6,8 @@
 
 namespace gs360 {
 
-Rigid3d Rigid3d::FromAxisAngle(const Eigen::Vector3d& axis, double angle, const Eigen::Vector3d& t) {
+Rigid3d Rigid3d::FromAxisAngle(const Eigen::Vector3d& axis, double angle,
+                               const Eigen::Vector3d& t) {
   const double n = axis.norm();
   if (n == 0.0) return Rigid3d(Eigen::Quaterniond::Identity(), t);
   return Rigid3d(Eigen::Quaterniond(Eigen::AngleAxisd(angle, axis / n)), t);
@@ -51,7 +52,9 @@ double Rigid3d::AngleRad() const {
   return 2.0 * std::atan2(rotation.vec().norm(), std::abs(rotation.w()));
 }
 
-double RotationDifferenceRad(const Rigid3d& a, const Rigid3d& b) { return (a.Inverse() * b).AngleRad(); }
+double RotationDifferenceRad(const Rigid3d& a, const Rigid3d& b) {
+  return (a.Inverse() * b).AngleRad();
+}
 
 double TranslationDifferenceMm(const Rigid3d& a, const Rigid3d& b) {
   return (a.translation - b.translation).norm();

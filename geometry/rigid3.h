@@ -12,7 +12,8 @@ struct Rigid3d {
   Eigen::Vector3d translation = Eigen::Vector3d::Zero();
 
   Rigid3d() = default;
-  Rigid3d(const Eigen::Quaterniond& r, const Eigen::Vector3d& t) : rotation(r.normalized()), translation(t) {}
+  Rigid3d(const Eigen::Quaterniond& r, const Eigen::Vector3d& t)
+      : rotation(r.normalized()), translation(t) {}
 
   static Rigid3d Identity() { return {}; }
   // Rotation by `angle` (rad) about `axis` (normalised here), then translation `t`.
@@ -35,8 +36,8 @@ struct Rigid3d {
   double AngleRad() const;
 };
 
-// Differences between two transforms that should agree: rotation angle (rad) of a_from_b^-1 * a_from_b2
-// and the translation distance (mm).
+// Differences between two transforms that should agree: rotation angle (rad) of a_from_b^-1 *
+// a_from_b2 and the translation distance (mm).
 double RotationDifferenceRad(const Rigid3d& a, const Rigid3d& b);
 double TranslationDifferenceMm(const Rigid3d& a, const Rigid3d& b);
 

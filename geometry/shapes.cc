@@ -740,9 +740,9 @@ SplineOptions FitInscribedProfile(const Bvh& mesh, int samples) {
       ray.direction = Eigen::Vector3d(std::cos(phi), std::sin(phi), 0.0);
       const auto hit = mesh.Intersect(ray);
       if (!hit) {
-        throw std::invalid_argument("FitInscribedProfile: no wall around the axis at z = " +
-                                    std::to_string(z) + " mm (azimuth " +
-                                    std::to_string(phi * 180.0 / std::numbers::pi) + " deg)");
+        throw std::invalid_argument(
+            "FitInscribedProfile: no wall around the axis at z = " + std::to_string(z) +
+            " mm (azimuth " + std::to_string(phi * 180.0 / std::numbers::pi) + " deg)");
       }
       radius = std::min(radius, hit->t);
     }

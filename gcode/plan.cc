@@ -1,0 +1,1123 @@
+#include "gcode/plan.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <nlohmann/json.hpp>
+#include <numbers>
+#include <sstream>
+#include <unordered_map>
+
+#include "gcode/tour.h"
+#include "geometry/bvh.h"
+#include "geometry/hash.h"
+#include "geometry/sampling.h"
+
+namespace gs360 {
+namespace {
+
+constexpr double kInf = std::numeric_limits<double>::infinity();
+constexpr double kPi = std::numbers::pi;
+constexpr double kGapTol = 1e-4;  // mm: "clear" means gap >= required - kGapTol everywhere
+
+std::string Num(double v) {
+  std::ostringstream os;
+  os.precision(10);
+  os << v;
+  return os.str();
+}
+
+[[noreturn]] void BadField(const std::string& field, double value, const std::string& rule) {
+  throw std::invalid_argument("PlanOptions." + field + " " + rule + ", got " + Num(value));
+}
+
+void RequirePositive(const char* field, double v) {
+  if (!(v > 0.0) || !std::isfinite(v)) BadField(field, v, "must be finite and > 0");
+}
+void RequireNonNegative(const char* field, double v) {
+  if (!(v >= 0.0) || !std::isfinite(v)) BadField(field, v, "must be finite and >= 0");
+}
+
+double Round3(double v) {
+  return std::round(v * 1000.0) / 1000.0;
+}
+
+// Lower bound of the signed distance to a surface inside `box`: the distance to the box from
+// outside, -inf inside (the point may be inside the surface).
+double BoxBound(const Eigen::AlignedBox3d& box, const Eigen::Vector3d& p) {
+  return box.contains(p) ? -kInf : box.exteriorDistance(p);
+}
+
+// Quasi-uniform unit directions (Fibonacci sphere).
+std::vector<Eigen::Vector3d> SphereDirections(int n) {
+  std::vector<Eigen::Vector3d> dirs;
+  dirs.reserve(n);
+  const double golden = kPi * (3.0 - std::sqrt(5.0));
+  for (int i = 0; i < n; ++i) {
+    const double z = 1.0 - (2.0 * i + 1.0) / n;
+    const double r = std::sqrt(std::max(0.0, 1.0 - z * z));
+    const double a = golden * i;
+    dirs.emplace_back(r * std::cos(a), r * std::sin(a), z);
+  }
+  return dirs;
+}
+
+}  // namespace
+
+// --- Small types ---------------------------------------------------------------------------------
+
+std::string_view DropReasonName(DropReason reason) {
+  switch (reason) {
+    case DropReason::kFov:
+      return "fov";
+    case DropReason::kViewAngle:
+      return "view_angle";
+    case DropReason::kFin:
+      return "fin";
+    case DropReason::kGel:
+      return "gel";
+    case DropReason::kReach:
+      return "reach";
+    case DropReason::kTravel:
+      return "travel";
+  }
+  return "unknown";
+}
+
+int DropCounts::Total() const {
+  int t = 0;
+  for (int c : counts) t += c;
+  return t;
+}
+
+double PlanEstimate::TravelShare() const {
+  const double total = Total();
+  return total > 0.0 ? (travel_s + retract_s) / total : 0.0;
+}
+
+double PlanEstimate::PressShare() const {
+  const double total = Total();
+  return total > 0.0 ? (press_s + dwell_s + host_s + reference_s) / total : 0.0;
+}
+
+double ProbePlan::TourGain() const {
+  const double t = estimate.Total();
+  return t > 0.0 ? sampling_order_estimate.Total() / t : 1.0;
+}
+
+void RigGeometry::Check() const {
+  if (sensor_mesh.Empty()) throw std::invalid_argument("RigGeometry.sensor_mesh is empty");
+  auto finite = [](const Rigid3d& t) {
+    return t.rotation.coeffs().allFinite() && t.translation.allFinite();
+  };
+  if (!finite(cam_from_sensor))
+    throw std::invalid_argument("RigGeometry.cam_from_sensor is not finite");
+  if (!finite(machine_from_sensor)) {
+    throw std::invalid_argument("RigGeometry.machine_from_sensor is not finite");
+  }
+  if (!tool_offset.allFinite())
+    throw std::invalid_argument("RigGeometry.tool_offset is not finite");
+  camera.Check();
+}
+
+FinOptions NominalRigOptions::DefaultFins() {
+  FinOptions fins;
+  fins.thickness = 0.45;
+  fins.inset = 1.5;
+  fins.bottom_z = 1.5;
+  return fins;
+}
+
+void NominalRigOptions::Check() const {
+  shape.Check();
+  fins.Check();
+  if (!std::isfinite(camera_z)) {
+    throw std::invalid_argument("NominalRigOptions.camera_z must be finite, got " + Num(camera_z));
+  }
+  if (!base_in_machine.allFinite()) {
+    throw std::invalid_argument("NominalRigOptions.base_in_machine must be finite");
+  }
+  if (!(ball_below_spindle >= 0.0) || !std::isfinite(ball_below_spindle)) {
+    throw std::invalid_argument(
+        "NominalRigOptions.ball_below_spindle must be finite and >= 0, got " +
+        Num(ball_below_spindle));
+  }
+}
+
+RigGeometry MakeNominalRig(const NominalRigOptions& options) {
+  options.Check();
+  RigGeometry rig;
+  rig.profile = MakeProfile(options.shape);
+  rig.sensor_mesh = MakeRevolutionMesh(*rig.profile, options.shape.tessellation);
+  rig.fins = MakeFins(options.fins, *rig.profile);
+  rig.camera = FisheyeIntrinsics::Default160();
+  // Camera axes = sensor axes; x_cam = x_sensor - (0, 0, camera_z).
+  rig.cam_from_sensor =
+      Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0, 0, -options.camera_z));
+  rig.machine_from_sensor = Rigid3d(Eigen::Quaterniond::Identity(), options.base_in_machine);
+  rig.tool_offset = Eigen::Vector3d(0.0, 0.0, -options.ball_below_spindle);
+  return rig;
+}
+
+RigGeometry MakeNominalRig() {
+  const NominalRigOptions options;
+  return MakeNominalRig(options);
+}
+
+void PlanOptions::Check() const {
+  if (probe_count < 1) BadField("probe_count", probe_count, "must be >= 1");
+  if (!(candidate_factor >= 1.0)) BadField("candidate_factor", candidate_factor, "must be >= 1");
+  RequirePositive("ball_radius", ball_radius);
+  RequirePositive("press_depth", press_depth);
+  if (press_depth >= ball_radius) {
+    BadField("press_depth", press_depth, "must be < ball_radius (" + Num(ball_radius) + ")");
+  }
+  RequirePositive("clearance", clearance);
+  RequirePositive("stylus_radius", stylus_radius);
+  if (stylus_radius >= ball_radius) {
+    BadField("stylus_radius", stylus_radius, "must be < ball_radius (" + Num(ball_radius) + ")");
+  }
+  RequirePositive("stylus_length", stylus_length);
+  if (stylus_length <= ball_radius) {
+    BadField("stylus_length", stylus_length, "must be > ball_radius (" + Num(ball_radius) + ")");
+  }
+  RequireNonNegative("holder_radius", holder_radius);
+  RequireNonNegative("holder_length", holder_length);
+  RequirePositive("press_feed_mm_per_min", press_feed_mm_per_min);
+  RequireNonNegative("retract_feed_mm_per_min", retract_feed_mm_per_min);
+  RequireNonNegative("settle_dwell_s", settle_dwell_s);
+  RequireNonNegative("capture_time_s", capture_time_s);
+  RequireNonNegative("status_poll_latency_s", status_poll_latency_s);
+  RequireNonNegative("host_latency_s", host_latency_s);
+  if (reference_every < 0) BadField("reference_every", reference_every, "must be >= 0");
+  RequireNonNegative("reference_dwell_s", reference_dwell_s);
+  RequireNonNegative("fov_margin_rad", fov_margin_rad);
+  RequireNonNegative("image_margin_px", image_margin_px);
+  if (!(max_view_angle_rad > 0.0) || !(max_view_angle_rad <= 0.5 * kPi)) {
+    BadField("max_view_angle_rad", max_view_angle_rad, "must be in (0, pi/2]");
+  }
+  RequireNonNegative("occlusion_tolerance_mm", occlusion_tolerance_mm);
+  RequireNonNegative("travel_clearance", travel_clearance);
+  if (travel_clearance > clearance) {
+    BadField("travel_clearance", travel_clearance, "must be <= clearance (" + Num(clearance) + ")");
+  }
+  RequireNonNegative("press_stylus_clearance", press_stylus_clearance);
+  if (!(contact_margin_rad >= 0.0) || !(contact_margin_rad < 0.5 * kPi)) {
+    BadField("contact_margin_rad", contact_margin_rad, "must be in [0, pi/2)");
+  }
+  RequireNonNegative("travel_limit_margin", travel_limit_margin);
+  RequireNonNegative("escape_margin", escape_margin);
+  if (!(arc_step_rad > 0.0) || !(arc_step_rad <= kPi / 3.0)) {
+    BadField("arc_step_rad", arc_step_rad, "must be in (0, pi/3]");
+  }
+  if (neighbours < 1) BadField("neighbours", neighbours, "must be >= 1");
+  if (max_improvement_passes < 0) {
+    BadField("max_improvement_passes", max_improvement_passes, "must be >= 0");
+  }
+  if (!start_machine.allFinite())
+    throw std::invalid_argument("PlanOptions.start_machine is not finite");
+  machine.Check();
+}
+
+// --- TravelPlanner -------------------------------------------------------------------------------
+
+TravelPlanner::TravelPlanner(const RigGeometry& rig, const PlanOptions& options)
+    : options_(options),
+      distance_(rig.profile ? SurfaceDistance::FromProfile(rig.profile)
+                            : SurfaceDistance::FromMesh(rig.sensor_mesh)),
+      machine_from_sensor_(rig.machine_from_sensor),
+      sensor_from_machine_(rig.machine_from_sensor.Inverse()),
+      tool_offset_(rig.tool_offset) {
+  options_.Check();
+  rig.Check();
+  stylus_dir_sensor_ = sensor_from_machine_.RotateDirection(Eigen::Vector3d::UnitZ()).normalized();
+  vertical_axis_ = (stylus_dir_sensor_ - Eigen::Vector3d::UnitZ()).norm() < 1e-9;
+  exact_stylus_ = vertical_axis_ && distance_.IsRevolution();
+  const double r = options_.ball_radius;
+  stylus_exit_ = std::sqrt(r * r - options_.stylus_radius * options_.stylus_radius);
+  parts_.push_back({options_.stylus_radius, stylus_exit_, options_.stylus_length});
+  if (options_.holder_radius > 0.0 && options_.holder_length > 0.0) {
+    parts_.push_back({options_.holder_radius, options_.stylus_length,
+                      options_.stylus_length + options_.holder_length});
+  }
+  double widest = r;
+  for (Part& p : parts_) {
+    p.step = std::min(p.radius, 0.5);
+    p.radius_eff = std::sqrt(p.radius * p.radius + 0.25 * p.step * p.step);
+    widest = std::max(widest, exact_stylus_ ? p.radius : p.radius_eff);
+  }
+  escape_radius_ =
+      distance_.BoundingRadius() + widest + options_.travel_clearance + options_.escape_margin;
+  // Highest point of the sensor in machine z; the ball above it by r + clearance + margin.
+  const Eigen::AlignedBox3d& b = distance_.Bounds();
+  double top = -kInf;
+  for (int corner = 0; corner < 8; ++corner) {
+    const Eigen::Vector3d c((corner & 1) ? b.max().x() : b.min().x(),
+                            (corner & 2) ? b.max().y() : b.min().y(),
+                            (corner & 4) ? b.max().z() : b.min().z());
+    top = std::max(top, (machine_from_sensor_ * c).z());
+  }
+  over_z_machine_ = top + r + options_.travel_clearance + options_.escape_margin - tool_offset_.z();
+}
+
+Eigen::Vector3d TravelPlanner::MachineFromBall(const Eigen::Vector3d& ball_sensor) const {
+  return machine_from_sensor_ * ball_sensor - tool_offset_;
+}
+
+Eigen::Vector3d TravelPlanner::BallFromMachine(const Eigen::Vector3d& machine) const {
+  return sensor_from_machine_ * (machine + tool_offset_);
+}
+
+double TravelPlanner::ObstacleDistance(const Eigen::Vector3d& s) const {
+  double d = distance_.Signed(s);
+  if (options_.base_is_obstacle) d = std::min(d, s.z());
+  return d;
+}
+
+TravelPlanner::Gaps TravelPlanner::ToolGaps(const Eigen::Vector3d& q) const {
+  Gaps g;
+  g.ball = ObstacleDistance(q) - options_.ball_radius;
+  g.stylus = kInf;
+  const Eigen::AlignedBox3d& box = distance_.Bounds();
+  for (const Part& part : parts_) {
+    if (exact_stylus_) {
+      // A vertical cylinder vs a solid of revolution (which contains every point closer to the
+      // axis at the same height): the distance is that of the cylinder's inner edge, the
+      // vertical segment at rho_e = rho - radius toward the axis, and for a vertical segment it
+      // is min(distances of its end points, rho_e - the largest solid radius over its heights).
+      const double rho = std::hypot(q.x(), q.y());
+      const double rho_e = std::max(0.0, rho - part.radius);
+      const double scale = rho > 0.0 ? rho_e / rho : 0.0;
+      const Eigen::Vector3d e(q.x() * scale, q.y() * scale, q.z());
+      const Eigen::Vector3d p1 = e + part.lo * Eigen::Vector3d::UnitZ();
+      const Eigen::Vector3d p2 = e + part.hi * Eigen::Vector3d::UnitZ();
+      double d = kInf;
+      for (const Eigen::Vector3d& p : {p1, p2}) {
+        // Skip the exact query when the box bound cannot lower the minimum.
+        if (BoxBound(box, p) >= std::min(d, g.stylus)) continue;
+        d = std::min(d, distance_.Signed(p));
+      }
+      const double m = distance_.MaxRadius(p1.z(), p2.z());
+      if (m > -kInf) d = std::min(d, rho_e - m);
+      g.stylus = std::min(g.stylus, d);
+    } else {
+      const double length = part.hi - part.lo;
+      const int n = std::max(1, static_cast<int>(std::ceil(length / part.step)));
+      const double step = length / n;
+      double lipschitz = -kInf;  // lower bound from the last exact query (distance is 1-Lipschitz)
+      for (int k = 0; k <= n; ++k, lipschitz -= step) {
+        const Eigen::Vector3d s = q + (part.lo + step * k) * stylus_dir_sensor_;
+        double bound = BoxBound(box, s);
+        if (options_.base_is_obstacle) bound = std::min(bound, s.z());
+        // Skip samples that cannot lower the minimum.
+        if (std::max(bound, lipschitz) - part.radius_eff >= g.stylus) continue;
+        lipschitz = ObstacleDistance(s);
+        g.stylus = std::min(g.stylus, lipschitz - part.radius_eff);
+      }
+    }
+  }
+  return g;
+}
+
+bool TravelPlanner::SegmentClear(const Eigen::Vector3d& a, const Eigen::Vector3d& b, double gap,
+                                 bool stylus_only) const {
+  const double ga = GapOf(ToolGaps(a), stylus_only);
+  const double gb = GapOf(ToolGaps(b), stylus_only);
+  return SegmentClearRec(a, b, ga, gb, gap, stylus_only, 0);
+}
+
+bool TravelPlanner::SegmentClearRec(const Eigen::Vector3d& a, const Eigen::Vector3d& b, double ga,
+                                    double gb, double gap, bool stylus_only, int depth) const {
+  if (ga < gap - kGapTol || gb < gap - kGapTol) return false;
+  const double length = (b - a).norm();
+  // Gaps are 1-Lipschitz in the ball position: along the segment the gap is at least this.
+  if (0.5 * (ga + gb - length) >= gap - kGapTol || depth >= 60) return true;
+  const Eigen::Vector3d m = 0.5 * (a + b);
+  const double gm = GapOf(ToolGaps(m), stylus_only);
+  return SegmentClearRec(a, m, ga, gm, gap, stylus_only, depth + 1) &&
+         SegmentClearRec(m, b, gm, gb, gap, stylus_only, depth + 1);
+}
+
+bool TravelPlanner::InTravel(const Eigen::Vector3d& machine) const {
+  for (int a = 0; a < 3; ++a) {
+    const double v = Round3(machine[a]);
+    if (v > -options_.travel_limit_margin + 1e-9 ||
+        v < -options_.machine.max_travel_mm[a] + options_.travel_limit_margin - 1e-9) {
+      return false;
+    }
+  }
+  return true;
+}
+
+std::optional<Eigen::Vector3d> TravelPlanner::RadialEscape(const Eigen::Vector3d& machine) const {
+  if (!vertical_axis_) return std::nullopt;
+  const Eigen::Vector3d s = BallFromMachine(machine);
+  const double rho = std::hypot(s.x(), s.y());
+  if (rho >= escape_radius_) return machine;
+  const Eigen::Vector2d dir =
+      rho > 1e-9 ? Eigen::Vector2d(s.x() / rho, s.y() / rho) : Eigen::Vector2d(1.0, 0.0);
+  const Eigen::Vector3d e(dir.x() * escape_radius_, dir.y() * escape_radius_, s.z());
+  if (!SegmentClear(s, e, options_.travel_clearance)) return std::nullopt;
+  return MachineFromBall(e);
+}
+
+std::optional<Eigen::Vector3d> TravelPlanner::UpEscape(const Eigen::Vector3d& machine) const {
+  if (machine.z() >= over_z_machine_) return machine;
+  const Eigen::Vector3d up(machine.x(), machine.y(), over_z_machine_);
+  if (!SegmentClear(BallFromMachine(machine), BallFromMachine(up), options_.travel_clearance)) {
+    return std::nullopt;
+  }
+  return up;
+}
+
+TravelPlanner::Node TravelPlanner::MakeNode(const Eigen::Vector3d& machine,
+                                            bool filter_travel) const {
+  Node node;
+  node.machine = machine;
+  node.ball = BallFromMachine(machine);
+  node.gap = ToolGaps(node.ball).Min();
+  node.radial = RadialEscape(machine);
+  node.up = UpEscape(machine);
+  if (filter_travel) {
+    if (node.radial && !InTravel(*node.radial)) node.radial.reset();
+    if (node.up && !InTravel(*node.up)) node.up.reset();
+  }
+  return node;
+}
+
+std::vector<Eigen::Vector3d> TravelPlanner::ArcWaypoints(const Eigen::Vector3d& a_machine,
+                                                         const Eigen::Vector3d& b_machine) const {
+  const Eigen::Vector3d a = BallFromMachine(a_machine), b = BallFromMachine(b_machine);
+  const double pa = std::atan2(a.y(), a.x()), pb = std::atan2(b.y(), b.x());
+  double delta = pb - pa;
+  while (delta > kPi) delta -= 2.0 * kPi;
+  while (delta <= -kPi) delta += 2.0 * kPi;
+  std::vector<Eigen::Vector3d> out;
+  if (std::abs(delta) < 1e-9) return out;
+  const int k = std::max(1, static_cast<int>(std::ceil(std::abs(delta) / options_.arc_step_rad)));
+  const double step = delta / k;
+  // Vertices on the tangent lines: every chord touches the escape cylinder but never enters it.
+  const double radius = escape_radius_ / std::cos(0.5 * step);
+  for (int j = 1; j <= k; ++j) {
+    const double f = (j - 0.5) / k;
+    const double phi = pa + step * (j - 0.5);
+    const Eigen::Vector3d s(radius * std::cos(phi), radius * std::sin(phi),
+                            a.z() + f * (b.z() - a.z()));
+    out.push_back(MachineFromBall(s));
+  }
+  return out;
+}
+
+double TravelPlanner::PathTimeStop(const Eigen::Vector3d& from,
+                                   const std::vector<Eigen::Vector3d>& waypoints,
+                                   const Eigen::Vector3d& to) const {
+  double t = 0.0;
+  Eigen::Vector3d at = from;
+  for (const Eigen::Vector3d& w : waypoints) {
+    t += RapidTime(at, w, options_.machine);
+    at = w;
+  }
+  return t + RapidTime(at, to, options_.machine);
+}
+
+bool TravelPlanner::StraightClear(const Node& a, const Node& b) const {
+  const double length = (a.ball - b.ball).norm();
+  const double gap = options_.travel_clearance;
+  if (a.gap < gap - kGapTol || b.gap < gap - kGapTol) return false;
+  if (0.5 * (a.gap + b.gap - length) >= gap - kGapTol) return true;
+  return SegmentClearRec(a.ball, b.ball, a.gap, b.gap, gap, false, 0);
+}
+
+std::optional<TravelPlanner::Route> TravelPlanner::BestRoute(const Node& a, const Node& b) const {
+  if (StraightClear(a, b)) {
+    return Route{{}, RapidTime(a.machine, b.machine, options_.machine)};
+  }
+  std::optional<Route> best;
+  auto consider = [&](std::vector<Eigen::Vector3d> waypoints) {
+    // Drop waypoints equal to their predecessor (or to the ends).
+    std::vector<Eigen::Vector3d> w;
+    Eigen::Vector3d at = a.machine;
+    for (const Eigen::Vector3d& p : waypoints) {
+      if ((p - at).norm() < 1e-9) continue;
+      w.push_back(p);
+      at = p;
+    }
+    while (!w.empty() && (w.back() - b.machine).norm() < 1e-9) w.pop_back();
+    for (const Eigen::Vector3d& p : w) {
+      if (!InTravel(p)) return;
+    }
+    if (!vertical_axis_) {
+      // The free-space arguments need an upright sensor: check every leg.
+      Eigen::Vector3d from = a.machine;
+      for (std::size_t i = 0; i <= w.size(); ++i) {
+        const Eigen::Vector3d to = i < w.size() ? w[i] : b.machine;
+        if (!SegmentClear(BallFromMachine(from), BallFromMachine(to), options_.travel_clearance)) {
+          return;
+        }
+        from = to;
+      }
+    }
+    const double t = PathTimeStop(a.machine, w, b.machine);
+    if (!best || t < best->time) best = Route{std::move(w), t};
+  };
+  // Around: out to the escape cylinder, around it, in.
+  if (a.radial && b.radial) {
+    std::vector<Eigen::Vector3d> w{*a.radial};
+    const auto arc = ArcWaypoints(*a.radial, *b.radial);
+    w.insert(w.end(), arc.begin(), arc.end());
+    w.push_back(*b.radial);
+    consider(std::move(w));
+  }
+  // Over the top: each end reaches the plane z = over_z straight up, or out then up.
+  auto exits = [&](const Node& n) {
+    std::vector<std::vector<Eigen::Vector3d>> e;
+    if (n.machine.z() >= over_z_machine_) {
+      e.push_back({});
+      return e;
+    }
+    if (n.up) e.push_back({*n.up});
+    if (n.radial && vertical_axis_) {
+      const Eigen::Vector3d r = *n.radial;
+      e.push_back({r, Eigen::Vector3d(r.x(), r.y(), std::max(r.z(), over_z_machine_))});
+    }
+    return e;
+  };
+  for (const auto& ea : exits(a)) {
+    for (const auto& eb : exits(b)) {
+      std::vector<Eigen::Vector3d> w = ea;
+      w.insert(w.end(), eb.rbegin(), eb.rend());
+      consider(std::move(w));
+    }
+  }
+  return best;
+}
+
+std::optional<std::vector<Eigen::Vector3d>> TravelPlanner::Path(
+    const Eigen::Vector3d& from_machine, const Eigen::Vector3d& to_machine) const {
+  const Node a = MakeNode(from_machine, true);
+  const Node b = MakeNode(to_machine, true);
+  auto route = BestRoute(a, b);
+  if (!route) return std::nullopt;
+  return route->waypoints;
+}
+
+// --- Planning ------------------------------------------------------------------------------------
+
+namespace {
+
+struct Candidate {
+  int sample_index = 0;
+  Eigen::Vector3d point = Eigen::Vector3d::Zero();
+  Eigen::Vector3d normal = Eigen::Vector3d::UnitZ();
+  Eigen::Vector3d approach_machine = Eigen::Vector3d::Zero();
+  Eigen::Vector3d press_machine = Eigen::Vector3d::Zero();
+};
+
+}  // namespace
+
+ProbePointFilter::ProbePointFilter(const RigGeometry& rig, const PlanOptions& options)
+    : options_(options),
+      profile_(rig.profile),
+      cam_from_sensor_(rig.cam_from_sensor),
+      travel_(rig, options),
+      camera_(rig.camera),
+      sensor_bvh_(rig.sensor_mesh),
+      contact_dirs_(SphereDirections(96)) {
+  if (!rig.fins.Empty()) fins_bvh_.emplace(rig.fins);
+  camera_center_ = rig.cam_from_sensor.Inverse().translation;
+  const double r = options.ball_radius;
+  cos_contact_ = std::cos(std::acos((r - options.press_depth) / r) + options.contact_margin_rad);
+}
+
+ProbePointFilter::Result ProbePointFilter::Classify(const Eigen::Vector3d& point,
+                                                    const Eigen::Vector3d& normal) const {
+  Result res;
+  Eigen::Vector3d p = point, n = normal.normalized();
+  if (options_.snap_to_profile && profile_ && travel_.Distance().IsRevolution()) {
+    const auto c = travel_.Distance().ClosestPoint(p);
+    p = c.point;
+    n = c.normal;
+  }
+  res.point = p;
+  res.normal = n;
+  auto drop = [&](DropReason r) {
+    res.reason = r;
+    return res;
+  };
+  // Field of view.
+  const Eigen::Vector3d x_cam = cam_from_sensor_ * p;
+  const auto uv = camera_.CamToPixel(x_cam);
+  if (!uv) return drop(DropReason::kFov);
+  const double theta = std::atan2(x_cam.head<2>().norm(), x_cam.z());
+  if (theta > camera_.MaxValidTheta() - options_.fov_margin_rad) return drop(DropReason::kFov);
+  const double m = options_.image_margin_px;
+  if (uv->x() < m - 0.5 || uv->y() < m - 0.5 || uv->x() > camera_.width() - 0.5 - m ||
+      uv->y() > camera_.height() - 0.5 - m) {
+    return drop(DropReason::kFov);
+  }
+  // View angle.
+  const Eigen::Vector3d to_point = p - camera_center_;
+  const double dist = to_point.norm();
+  if (!(dist > 0.0)) return drop(DropReason::kFov);
+  const Eigen::Vector3d d = to_point / dist;
+  if (n.dot(d) < std::cos(options_.max_view_angle_rad)) return drop(DropReason::kViewAngle);
+  // Occlusion by the fins, then by the gel itself.
+  const Ray ray{camera_center_, d};
+  if (fins_bvh_ && fins_bvh_->Occluded(ray, 0.0, dist)) return drop(DropReason::kFin);
+  const double tol = options_.occlusion_tolerance_mm + 1e-3 * dist;
+  if (dist > tol && sensor_bvh_.Occluded(ray, 0.0, dist - tol)) return drop(DropReason::kGel);
+  // Reach.
+  const double r = options_.ball_radius;
+  const Eigen::Vector3d approach = p + n * (r + options_.clearance);
+  const Eigen::Vector3d press = p + n * (r - options_.press_depth);
+  const auto ga = travel_.ToolGaps(approach);
+  if (ga.Min() < options_.travel_clearance - kGapTol) return drop(DropReason::kReach);
+  const auto gp = travel_.ToolGaps(press);
+  // At full depth the ball must penetrate only at p (not deeper elsewhere) ...
+  if (gp.ball < -options_.press_depth - 0.01) return drop(DropReason::kReach);
+  if (options_.base_is_obstacle && press.z() - r < 0.0) return drop(DropReason::kReach);
+  if (gp.stylus < options_.press_stylus_clearance - kGapTol) return drop(DropReason::kReach);
+  if (!travel_.SegmentClear(approach, press, options_.press_stylus_clearance, true)) {
+    return drop(DropReason::kReach);
+  }
+  // ... and touch nothing else: ball points away from the contact cap are outside.
+  for (const Eigen::Vector3d& w : contact_dirs_) {
+    if (-w.dot(n) >= cos_contact_) continue;
+    if (travel_.ObstacleDistance(press + r * w) < -1e-3) return drop(DropReason::kReach);
+  }
+  // A way out: radially or straight up.
+  res.approach_machine = travel_.MachineFromBall(approach);
+  res.press_machine = travel_.MachineFromBall(press);
+  TravelPlanner::Node node = travel_.MakeNode(res.approach_machine, false);
+  if (!node.radial && !node.up) return drop(DropReason::kReach);
+  // Travel limits.
+  if (!travel_.InTravel(res.approach_machine) || !travel_.InTravel(res.press_machine)) {
+    return drop(DropReason::kTravel);
+  }
+  if (node.radial && !travel_.InTravel(*node.radial)) node.radial.reset();
+  if (node.up && !travel_.InTravel(*node.up)) node.up.reset();
+  if (!node.radial && !node.up) return drop(DropReason::kTravel);
+  res.node = std::move(node);
+  return res;
+}
+
+namespace {
+
+// Travel times between nodes (index n = the start), cached for the pairs that needed more than
+// the quick clearance bound.
+class RouteCache {
+ public:
+  RouteCache(const TravelPlanner& travel, const std::vector<TravelPlanner::Node>& nodes,
+             const TravelPlanner::Node& start)
+      : travel_(travel), nodes_(nodes), start_(start) {}
+
+  const TravelPlanner::Node& NodeAt(int i) const {
+    return i == static_cast<int>(nodes_.size()) ? start_ : nodes_[i];
+  }
+
+  double Time(int i, int j) {
+    if (i == j) return 0.0;
+    const std::uint64_t key = Key(i, j);
+    if (auto it = cache_.find(key); it != cache_.end()) return it->second;
+    const auto& a = NodeAt(std::min(i, j));
+    const auto& b = NodeAt(std::max(i, j));
+    double t = 0.0;
+    const double length = (a.ball - b.ball).norm();
+    const double gap = travel_.Options().travel_clearance;
+    if (a.gap >= gap && b.gap >= gap && 0.5 * (a.gap + b.gap - length) >= gap) {
+      t = RapidTime(a.machine, b.machine, travel_.Options().machine);
+      return t;  // quick, not cached
+    }
+    const auto route = travel_.BestRoute(a, b);
+    t = route ? route->time : 1e9;  // no route: never chosen if avoidable (checked later)
+    cache_.emplace(key, t);
+    return t;
+  }
+
+  double Lower(int i, int j) const {
+    return RapidTime(NodeAt(i).machine, NodeAt(j).machine, travel_.Options().machine);
+  }
+
+ private:
+  static std::uint64_t Key(int i, int j) {
+    const auto lo = static_cast<std::uint64_t>(std::min(i, j));
+    const auto hi = static_cast<std::uint64_t>(std::max(i, j));
+    return (lo << 32) | hi;
+  }
+  const TravelPlanner& travel_;
+  const std::vector<TravelPlanner::Node>& nodes_;
+  const TravelPlanner::Node& start_;
+  std::unordered_map<std::uint64_t, double> cache_;
+};
+
+// Builds the probes in `order` with their travel waypoints. Throws when two consecutive
+// positions have no collision-free route.
+std::vector<PlannedProbe> BuildProbes(const std::vector<int>& order,
+                                      const std::vector<Candidate>& kept,
+                                      const std::vector<TravelPlanner::Node>& nodes,
+                                      const TravelPlanner::Node& start, const TravelPlanner& travel,
+                                      const PlanOptions& options,
+                                      std::vector<Eigen::Vector3d>* park) {
+  std::vector<PlannedProbe> probes;
+  probes.reserve(order.size());
+  const TravelPlanner::Node* prev = &start;
+  int prev_index = -1;
+  for (std::size_t k = 0; k < order.size(); ++k) {
+    const int i = order[k];
+    const Candidate& c = kept[i];
+    PlannedProbe p;
+    p.plan_index = static_cast<int>(k);
+    p.sample_index = c.sample_index;
+    p.point_sensor = c.point;
+    p.normal_sensor = c.normal;
+    p.approach_machine = c.approach_machine;
+    p.press_machine = c.press_machine;
+    p.retract_machine = c.approach_machine;
+    p.reference_before =
+        k == 0 || (options.reference_every > 0 && k % options.reference_every == 0);
+    const auto route = travel.BestRoute(*prev, nodes[i]);
+    if (!route) {
+      throw std::runtime_error("MakeProbePlan: no collision-free travel from " +
+                               (prev_index < 0 ? std::string("the start position")
+                                               : "probe " + std::to_string(prev_index)) +
+                               " to probe " + std::to_string(k) + " (sample " +
+                               std::to_string(c.sample_index) + ")");
+    }
+    p.travel_machine = route->waypoints;
+    probes.push_back(std::move(p));
+    prev = &nodes[i];
+    prev_index = static_cast<int>(k);
+  }
+  park->clear();
+  if (options.return_to_start && !order.empty()) {
+    const auto route = travel.BestRoute(*prev, start);
+    if (!route) {
+      throw std::runtime_error(
+          "MakeProbePlan: no collision-free travel from the last probe back "
+          "to the start position");
+    }
+    *park = route->waypoints;
+    park->push_back(start.machine);
+  }
+  return probes;
+}
+
+std::string OptionsHash(const RigGeometry& rig, const PlanOptions& o) {
+  Hasher h;
+  h.Add("gs360.ProbePlan.v1");
+  h.AddPod(rig.sensor_mesh.Hash());
+  h.AddPod(rig.fins.Hash());
+  h.Add(rig.profile ? rig.profile->Describe() : std::string("mesh"));
+  const auto& c = rig.camera;
+  h.AddPod(c.width).AddPod(c.height);
+  for (double v : {c.fx, c.fy, c.cx, c.cy, c.skew, c.k[0], c.k[1], c.k[2], c.k[3], c.max_theta}) {
+    h.AddDouble(v);
+  }
+  for (const Rigid3d* t : {&rig.cam_from_sensor, &rig.machine_from_sensor}) {
+    for (int i = 0; i < 4; ++i) h.AddDouble(t->rotation.coeffs()[i]);
+    for (int i = 0; i < 3; ++i) h.AddDouble(t->translation[i]);
+  }
+  for (int i = 0; i < 3; ++i) h.AddDouble(rig.tool_offset[i]);
+  h.AddPod(o.probe_count).AddPod(static_cast<int>(o.count_is_kept)).AddPod(o.seed);
+  for (double v : {o.candidate_factor,
+                   o.ball_radius,
+                   o.press_depth,
+                   o.clearance,
+                   o.stylus_radius,
+                   o.stylus_length,
+                   o.holder_radius,
+                   o.holder_length,
+                   o.press_feed_mm_per_min,
+                   o.retract_feed_mm_per_min,
+                   o.settle_dwell_s,
+                   o.capture_time_s,
+                   o.status_poll_latency_s,
+                   o.host_latency_s,
+                   o.reference_dwell_s,
+                   o.fov_margin_rad,
+                   o.image_margin_px,
+                   o.max_view_angle_rad,
+                   o.occlusion_tolerance_mm,
+                   o.travel_clearance,
+                   o.press_stylus_clearance,
+                   o.contact_margin_rad,
+                   o.travel_limit_margin,
+                   o.escape_margin,
+                   o.arc_step_rad,
+                   o.machine.junction_deviation_mm}) {
+    h.AddDouble(v);
+  }
+  h.AddPod(static_cast<int>(o.snap_to_profile)).AddPod(static_cast<int>(o.base_is_obstacle));
+  h.AddPod(o.reference_every).AddPod(static_cast<int>(o.optimise_order)).AddPod(o.neighbours);
+  h.AddPod(o.max_improvement_passes).AddPod(static_cast<int>(o.junction_model));
+  h.AddPod(static_cast<int>(o.return_to_start)).AddPod(o.machine.planner_blocks);
+  for (int i = 0; i < 3; ++i) {
+    h.AddDouble(o.start_machine[i]).AddDouble(o.machine.max_rate_mm_per_min[i]);
+    h.AddDouble(o.machine.acceleration_mm_per_s2[i]).AddDouble(o.machine.max_travel_mm[i]);
+  }
+  return h.Hex();
+}
+
+}  // namespace
+
+ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
+  const auto t0 = std::chrono::steady_clock::now();
+  options.Check();
+  rig.Check();
+  const ProbePointFilter filter(rig, options);
+  const TravelPlanner& travel = filter.travel();
+
+  ProbePlan plan;
+  plan.start_machine = options.start_machine;
+  plan.options_hash = OptionsHash(rig, options);
+
+  std::vector<Candidate> kept;
+  std::vector<TravelPlanner::Node> nodes;
+  auto add = [&](const SurfaceSample& s, bool count_drops) {
+    auto res = filter.Classify(s.point, s.normal);
+    if (res.reason) {
+      if (count_drops) ++plan.dropped[*res.reason];
+      return;
+    }
+    Candidate c;
+    c.sample_index = static_cast<int>(kept.size());
+    c.point = res.point;
+    c.normal = res.normal;
+    c.approach_machine = res.approach_machine;
+    c.press_machine = res.press_machine;
+    kept.push_back(c);
+    nodes.push_back(std::move(res.node));
+  };
+  BlueNoiseOptions bn;
+  bn.count = options.probe_count;
+  bn.seed = options.seed;
+  bn.candidate_factor = options.candidate_factor;
+  if (options.count_is_kept) {
+    // Sample only where every filter passes; count the rejected draws.
+    const auto samples = SampleBlueNoise(rig.sensor_mesh, bn, [&](const SurfaceSample& s) {
+      ++plan.candidates;
+      const auto res = filter.Classify(s.point, s.normal);
+      if (res.reason) ++plan.dropped[*res.reason];
+      return !res.reason.has_value();
+    });
+    for (const SurfaceSample& s : samples) add(s, false);
+  } else {
+    const auto samples = SampleBlueNoise(rig.sensor_mesh, bn);
+    plan.candidates = static_cast<int>(samples.size());
+    for (const SurfaceSample& s : samples) add(s, true);
+  }
+  if (kept.empty()) {
+    std::ostringstream os;
+    os << "MakeProbePlan: no probe point survives the filters (" << plan.candidates
+       << " candidates;";
+    for (int r = 0; r < kNumDropReasons; ++r) {
+      os << " " << DropReasonName(static_cast<DropReason>(r)) << " " << plan.dropped.counts[r];
+    }
+    os << ")";
+    throw std::runtime_error(os.str());
+  }
+
+  const TravelPlanner::Node start = travel.MakeNode(options.start_machine, true);
+  const int n = static_cast<int>(kept.size());
+
+  // Sampling order (the baseline).
+  std::vector<int> sampling(n);
+  for (int i = 0; i < n; ++i) sampling[i] = i;
+  std::vector<Eigen::Vector3d> park;
+  {
+    const auto probes = BuildProbes(sampling, kept, nodes, start, travel, options, &park);
+    plan.sampling_order_estimate = EstimatePlan(probes, park, options);
+  }
+
+  // The tour.
+  RouteCache cache(travel, nodes, start);
+  std::vector<Eigen::Vector3d> positions(n);
+  for (int i = 0; i < n; ++i) positions[i] = kept[i].approach_machine;
+  TourOptions tour_options;
+  tour_options.neighbours = options.neighbours;
+  tour_options.max_passes = options.max_improvement_passes;
+  tour_options.optimise = options.optimise_order;
+  const TourResult tour = SolveTour(
+      positions, options.start_machine, [&](int i, int j) { return cache.Time(i, j); },
+      [&](int i, int j) { return cache.Lower(i, j); }, tour_options);
+
+  if (options.optimise_order) {
+    // Keep the nearest-neighbour tour's estimate for the report.
+    TourOptions nn_only = tour_options;
+    nn_only.optimise = false;
+    const TourResult nn = SolveTour(
+        positions, options.start_machine, [&](int i, int j) { return cache.Time(i, j); },
+        [&](int i, int j) { return cache.Lower(i, j); }, nn_only);
+    std::vector<Eigen::Vector3d> nn_park;
+    const auto probes = BuildProbes(nn.order, kept, nodes, start, travel, options, &nn_park);
+    plan.nearest_neighbour_s = EstimatePlan(probes, nn_park, options).Total();
+  }
+
+  plan.probes = BuildProbes(tour.order, kept, nodes, start, travel, options, &park);
+  plan.park_machine = park;
+  plan.estimate = EstimatePlan(plan.probes, plan.park_machine, options);
+  if (!options.optimise_order) plan.nearest_neighbour_s = plan.estimate.Total();
+  // Never worse than the sampling order (possible only for tiny plans with junction effects).
+  if (plan.estimate.Total() > plan.sampling_order_estimate.Total()) {
+    plan.probes = BuildProbes(sampling, kept, nodes, start, travel, options, &park);
+    plan.park_machine = park;
+    plan.estimate = plan.sampling_order_estimate;
+  }
+  for (const PlannedProbe& p : plan.probes) {
+    plan.waypoints += static_cast<int>(p.travel_machine.size());
+    if (!p.travel_machine.empty()) ++plan.detoured_moves;
+  }
+  CheckTravel(plan, options.machine, 0.0);
+  plan.planning_seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return plan;
+}
+
+// --- Estimate ------------------------------------------------------------------------------------
+
+PlanEstimate EstimatePlan(const std::vector<PlannedProbe>& probes,
+                          const std::vector<Eigen::Vector3d>& park_machine,
+                          const PlanOptions& options) {
+  enum Kind { kTravelMove, kPressMove, kRetractMove };
+  PlanEstimate est;
+  const MachineSettings& settings = options.machine;
+  const double host =
+      std::max(options.capture_time_s, options.status_poll_latency_s) + options.host_latency_s;
+  Eigen::Vector3d group_start = options.start_machine;
+  Eigen::Vector3d at = options.start_machine;
+  std::vector<Move> moves;
+  std::vector<Kind> kinds;
+  auto add = [&](const Eigen::Vector3d& target, double feed, Kind kind) {
+    if ((target - at).norm() == 0.0) return;  // GRBL drops zero-length blocks
+    moves.push_back(Move{target, feed});
+    kinds.push_back(kind);
+    at = target;
+  };
+  auto flush = [&]() {
+    const auto blocks = PlanPath(group_start, moves, settings, options.junction_model);
+    for (std::size_t i = 0; i < blocks.size(); ++i) {
+      switch (kinds[i]) {
+        case kTravelMove:
+          est.travel_s += blocks[i].time;
+          break;
+        case kPressMove:
+          est.press_s += blocks[i].time;
+          break;
+        case kRetractMove:
+          est.retract_s += blocks[i].time;
+          break;
+      }
+    }
+    moves.clear();
+    kinds.clear();
+    group_start = at;
+  };
+  for (std::size_t k = 0; k < probes.size(); ++k) {
+    const PlannedProbe& p = probes[k];
+    if (k > 0) add(probes[k - 1].retract_machine, options.retract_feed_mm_per_min, kRetractMove);
+    for (const Eigen::Vector3d& w : p.travel_machine) add(w, 0.0, kTravelMove);
+    add(p.approach_machine, 0.0, kTravelMove);
+    if (p.reference_before) {
+      flush();
+      est.reference_s += options.reference_dwell_s + host;
+    }
+    add(p.press_machine, options.press_feed_mm_per_min, kPressMove);
+    flush();
+    est.dwell_s += options.settle_dwell_s;
+    est.host_s += host;
+  }
+  if (!probes.empty()) {
+    add(probes.back().retract_machine, options.retract_feed_mm_per_min, kRetractMove);
+    for (const Eigen::Vector3d& w : park_machine) add(w, 0.0, kTravelMove);
+    flush();
+  }
+  return est;
+}
+
+// --- Travel check --------------------------------------------------------------------------------
+
+void CheckTravel(const ProbePlan& plan, const MachineSettings& settings, double margin) {
+  static const char kAxis[3] = {'X', 'Y', 'Z'};
+  auto check = [&](const Eigen::Vector3d& m, int plan_index, const std::string& what) {
+    for (int a = 0; a < 3; ++a) {
+      const double v = Round3(m[a]);
+      const double lo = -settings.max_travel_mm[a] + margin, hi = -margin;
+      if (v < lo - 1e-9 || v > hi + 1e-9 || !std::isfinite(v)) {
+        std::ostringstream os;
+        os.setf(std::ios::fixed);
+        os.precision(3);
+        os << (plan_index >= 0 ? "probe " + std::to_string(plan_index) : std::string("park path"))
+           << " " << what << ": " << kAxis[a] << " = " << v << " mm is outside the travel [" << lo
+           << ", " << hi << "] ($13" << a << " = " << settings.max_travel_mm[a] << ", margin "
+           << margin << ")";
+        throw TravelLimitError(os.str(), plan_index, a);
+      }
+    }
+  };
+  for (const PlannedProbe& p : plan.probes) {
+    for (std::size_t w = 0; w < p.travel_machine.size(); ++w) {
+      check(p.travel_machine[w], p.plan_index, "travel waypoint " + std::to_string(w));
+    }
+    check(p.approach_machine, p.plan_index, "approach");
+    check(p.press_machine, p.plan_index, "press");
+    check(p.retract_machine, p.plan_index, "retract");
+  }
+  for (std::size_t w = 0; w + 1 < plan.park_machine.size(); ++w) {
+    check(plan.park_machine[w], -1, "waypoint " + std::to_string(w));
+  }
+}
+
+// --- JSON ----------------------------------------------------------------------------------------
+
+namespace {
+
+nlohmann::json EstimateJson(const PlanEstimate& e) {
+  return {{"total_s", e.Total()},
+          {"hours", e.Hours()},
+          {"travel_s", e.travel_s},
+          {"press_s", e.press_s},
+          {"retract_s", e.retract_s},
+          {"dwell_s", e.dwell_s},
+          {"host_s", e.host_s},
+          {"reference_s", e.reference_s},
+          {"travel_share", e.TravelShare()},
+          {"press_share", e.PressShare()}};
+}
+
+PlanEstimate EstimateFromJson(const nlohmann::json& j) {
+  PlanEstimate e;
+  e.travel_s = j.at("travel_s").get<double>();
+  e.press_s = j.at("press_s").get<double>();
+  e.retract_s = j.at("retract_s").get<double>();
+  e.dwell_s = j.at("dwell_s").get<double>();
+  e.host_s = j.at("host_s").get<double>();
+  e.reference_s = j.at("reference_s").get<double>();
+  return e;
+}
+
+nlohmann::json Vec(const Eigen::Vector3d& v) {
+  return nlohmann::json::array({v.x(), v.y(), v.z()});
+}
+
+Eigen::Vector3d VecFrom(const nlohmann::json& j) {
+  if (!j.is_array() || j.size() != 3) throw std::invalid_argument("expected [x, y, z]");
+  return {j[0].get<double>(), j[1].get<double>(), j[2].get<double>()};
+}
+
+}  // namespace
+
+nlohmann::json PlanSummaryJson(const ProbePlan& plan, const PlanOptions& options) {
+  nlohmann::json drops = nlohmann::json::object();
+  for (int r = 0; r < kNumDropReasons; ++r) {
+    drops[std::string(DropReasonName(static_cast<DropReason>(r)))] = plan.dropped.counts[r];
+  }
+  const auto& m = options.machine;
+  return {
+      {"candidates", plan.candidates},
+      {"kept", plan.probes.size()},
+      {"dropped", drops},
+      {"dropped_total", plan.dropped.Total()},
+      {"waypoints", plan.waypoints},
+      {"detoured_moves", plan.detoured_moves},
+      {"estimate", EstimateJson(plan.estimate)},
+      {"sampling_order_estimate", EstimateJson(plan.sampling_order_estimate)},
+      {"nearest_neighbour_s", plan.nearest_neighbour_s},
+      {"tour_gain", plan.TourGain()},
+      {"planning_seconds", plan.planning_seconds},
+      {"options_hash", plan.options_hash},
+      {"options",
+       {{"probe_count", options.probe_count},
+        {"count_is_kept", options.count_is_kept},
+        {"seed", options.seed},
+        {"ball_radius", options.ball_radius},
+        {"press_depth", options.press_depth},
+        {"clearance", options.clearance},
+        {"stylus_radius", options.stylus_radius},
+        {"stylus_length", options.stylus_length},
+        {"holder_radius", options.holder_radius},
+        {"holder_length", options.holder_length},
+        {"press_feed_mm_per_min", options.press_feed_mm_per_min},
+        {"retract_feed_mm_per_min", options.retract_feed_mm_per_min},
+        {"settle_dwell_s", options.settle_dwell_s},
+        {"capture_time_s", options.capture_time_s},
+        {"status_poll_latency_s", options.status_poll_latency_s},
+        {"host_latency_s", options.host_latency_s},
+        {"reference_every", options.reference_every},
+        {"junction_model", std::string(JunctionModelName(options.junction_model))}}},
+      {"machine",
+       {{"max_rate_mm_per_min", Vec(m.max_rate_mm_per_min)},
+        {"acceleration_mm_per_s2", Vec(m.acceleration_mm_per_s2)},
+        {"max_travel_mm", Vec(m.max_travel_mm)},
+        {"junction_deviation_mm", m.junction_deviation_mm},
+        {"planner_blocks", m.planner_blocks}}},
+  };
+}
+
+nlohmann::json PlanToJson(const ProbePlan& plan, const PlanOptions& options) {
+  nlohmann::json j = PlanSummaryJson(plan, options);
+  j["format"] = "gs360.probe_plan.v1";
+  j["start_machine"] = Vec(plan.start_machine);
+  nlohmann::json park = nlohmann::json::array();
+  for (const auto& w : plan.park_machine) park.push_back(Vec(w));
+  j["park_machine"] = park;
+  nlohmann::json probes = nlohmann::json::array();
+  for (const PlannedProbe& p : plan.probes) {
+    nlohmann::json travel = nlohmann::json::array();
+    for (const auto& w : p.travel_machine) travel.push_back(Vec(w));
+    probes.push_back({{"plan_index", p.plan_index},
+                      {"sample_index", p.sample_index},
+                      {"point_sensor", Vec(p.point_sensor)},
+                      {"normal_sensor", Vec(p.normal_sensor)},
+                      {"approach_machine", Vec(p.approach_machine)},
+                      {"press_machine", Vec(p.press_machine)},
+                      {"retract_machine", Vec(p.retract_machine)},
+                      {"travel_machine", travel},
+                      {"reference_before", p.reference_before}});
+  }
+  j["probes"] = probes;
+  return j;
+}
+
+ProbePlan PlanFromJson(const nlohmann::json& j) {
+  try {
+    if (j.at("format").get<std::string>() != "gs360.probe_plan.v1") {
+      throw std::invalid_argument("unknown format " + j.at("format").dump());
+    }
+    ProbePlan plan;
+    plan.candidates = j.at("candidates").get<int>();
+    for (int r = 0; r < kNumDropReasons; ++r) {
+      plan.dropped.counts[r] =
+          j.at("dropped").at(std::string(DropReasonName(static_cast<DropReason>(r)))).get<int>();
+    }
+    plan.waypoints = j.at("waypoints").get<int>();
+    plan.detoured_moves = j.at("detoured_moves").get<int>();
+    plan.estimate = EstimateFromJson(j.at("estimate"));
+    plan.sampling_order_estimate = EstimateFromJson(j.at("sampling_order_estimate"));
+    plan.nearest_neighbour_s = j.at("nearest_neighbour_s").get<double>();
+    plan.planning_seconds = j.at("planning_seconds").get<double>();
+    plan.options_hash = j.at("options_hash").get<std::string>();
+    plan.start_machine = VecFrom(j.at("start_machine"));
+    for (const auto& w : j.at("park_machine")) plan.park_machine.push_back(VecFrom(w));
+    for (const auto& jp : j.at("probes")) {
+      PlannedProbe p;
+      p.plan_index = jp.at("plan_index").get<int>();
+      p.sample_index = jp.at("sample_index").get<int>();
+      p.point_sensor = VecFrom(jp.at("point_sensor"));
+      p.normal_sensor = VecFrom(jp.at("normal_sensor"));
+      p.approach_machine = VecFrom(jp.at("approach_machine"));
+      p.press_machine = VecFrom(jp.at("press_machine"));
+      p.retract_machine = VecFrom(jp.at("retract_machine"));
+      for (const auto& w : jp.at("travel_machine")) p.travel_machine.push_back(VecFrom(w));
+      p.reference_before = jp.at("reference_before").get<bool>();
+      plan.probes.push_back(std::move(p));
+    }
+    return plan;
+  } catch (const nlohmann::json::exception& e) {
+    throw std::invalid_argument(std::string("PlanFromJson: malformed plan: ") + e.what());
+  } catch (const std::invalid_argument& e) {
+    throw std::invalid_argument(std::string("PlanFromJson: ") + e.what());
+  }
+}
+
+}  // namespace gs360

@@ -1,0 +1,171 @@
+#include "sim/rig_model.h"
+
+#include <algorithm>
+#include <cmath>
+#include <numbers>
+#include <sstream>
+#include <stdexcept>
+
+#include "sim/camera_random.h"
+
+namespace gs360 {
+namespace {
+
+constexpr double kDegToRad = std::numbers::pi / 180.0;
+
+[[noreturn]] void ThrowField(const std::string& field, double value, const std::string& why) {
+  std::ostringstream os;
+  os << field << " = " << value << ": " << why;
+  throw std::invalid_argument(os.str());
+}
+
+void RequireFiniteNonNegative(const std::string& field, double value) {
+  if (!std::isfinite(value) || value < 0.0) ThrowField(field, value, "must be finite and >= 0");
+}
+
+// Unit vector uniformly distributed on the sphere.
+Eigen::Vector3d RandomUnitVector(SimRandom& rng) {
+  const double z = rng.Uniform(-1.0, 1.0);
+  const double phi = rng.Uniform(0.0, 2.0 * std::numbers::pi);
+  const double s = std::sqrt(std::max(0.0, 1.0 - z * z));
+  return {s * std::cos(phi), s * std::sin(phi), z};
+}
+
+}  // namespace
+
+void TruePerturbationOptions::Check() const {
+  RequireFiniteNonNegative("TruePerturbationOptions.translation_mm", translation_mm);
+  RequireFiniteNonNegative("TruePerturbationOptions.rotation_deg", rotation_deg);
+  if (rotation_deg >= 90.0) {
+    ThrowField("TruePerturbationOptions.rotation_deg", rotation_deg, "must be < 90");
+  }
+  RequireFiniteNonNegative("TruePerturbationOptions.focal_relative", focal_relative);
+  if (focal_relative >= 0.2) {
+    ThrowField("TruePerturbationOptions.focal_relative", focal_relative, "must be < 0.2");
+  }
+  RequireFiniteNonNegative("TruePerturbationOptions.aspect_relative", aspect_relative);
+  if (aspect_relative >= 0.2) {
+    ThrowField("TruePerturbationOptions.aspect_relative", aspect_relative, "must be < 0.2");
+  }
+  RequireFiniteNonNegative("TruePerturbationOptions.principal_point_px", principal_point_px);
+  RequireFiniteNonNegative("TruePerturbationOptions.k1", k1);
+  RequireFiniteNonNegative("TruePerturbationOptions.k2", k2);
+}
+
+TruePerturbationOptions TruePerturbationOptions::None() {
+  TruePerturbationOptions p;
+  p.translation_mm = 0.0;
+  p.rotation_deg = 0.0;
+  p.focal_relative = 0.0;
+  p.aspect_relative = 0.0;
+  p.principal_point_px = 0.0;
+  p.k1 = 0.0;
+  p.k2 = 0.0;
+  return p;
+}
+
+FinOptions SimRigOptions::DefaultFins() {
+  FinOptions fins;
+  fins.thickness = 0.45;
+  fins.inset = 1.5;
+  fins.bottom_z = 1.5;
+  return fins;
+}
+
+void SimRigOptions::Check() const {
+  if (mesh_path.empty()) shape.Check();
+  mesh_load.Check();
+  fins.Check();
+  nominal_intrinsics.Check();
+  perturbation.Check();
+  if (!std::isfinite(camera_z) || !(camera_z < fins.bottom_z)) {
+    ThrowField("SimRigOptions.camera_z", camera_z,
+               "must be finite and below the fins' bottom edge (fins.bottom_z = " +
+                   std::to_string(fins.bottom_z) + ")");
+  }
+  if (!std::isfinite(ball_radius) || !(ball_radius > 0.0)) {
+    ThrowField("SimRigOptions.ball_radius", ball_radius, "must be finite and > 0");
+  }
+  if (!machine_from_sensor.translation.allFinite() ||
+      !machine_from_sensor.rotation.coeffs().allFinite()) {
+    throw std::invalid_argument("SimRigOptions.machine_from_sensor is not finite");
+  }
+  if (!tool_offset.allFinite()) {
+    throw std::invalid_argument("SimRigOptions.tool_offset is not finite");
+  }
+}
+
+Rigid3d NominalCamFromSensor(double camera_z) {
+  // sensor_from_cam: identity rotation, camera centre at (0, 0, camera_z).
+  return Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.0, 0.0, -camera_z));
+}
+
+SimRig::SimRig(const SimRigOptions& options) : options_(options) {
+  options_.Check();
+  TriangleMesh gel;
+  if (options_.mesh_path.empty()) {
+    profile_ = MakeProfile(options_.shape);
+    gel = MakeRevolutionMesh(*profile_, options_.shape.tessellation);
+  } else {
+    gel = LoadMesh(options_.mesh_path, options_.mesh_load);
+    if (!gel.HasNormals()) gel.ComputeVertexNormals();
+  }
+  gel_bvh_ = std::make_unique<Bvh>(gel);
+  if (!profile_) profile_ = MakeSplineProfile(FitInscribedProfile(*gel_bvh_));
+  fin_bvh_ = std::make_unique<Bvh>(MakeFins(options_.fins, *profile_));
+
+  // True camera: the nominal one perturbed by fixed magnitudes in seeded directions.
+  SimRandom rng(MixSeed(options_.seed, 0x7472756563616dull));  // "truecam"
+  const TruePerturbationOptions& p = options_.perturbation;
+  const Rigid3d nominal = nominal_cam_from_sensor();
+  const Rigid3d sensor_from_cam_nominal = nominal.Inverse();
+  const Eigen::Vector3d centre_offset = p.translation_mm * RandomUnitVector(rng);
+  const Eigen::Vector3d rotation_axis = RandomUnitVector(rng);
+  // sensor_from_cam_true = (rotate the camera about its own centre) then move the centre.
+  Rigid3d sensor_from_cam_true = sensor_from_cam_nominal;
+  sensor_from_cam_true.rotation =
+      (sensor_from_cam_nominal.rotation *
+       Eigen::Quaterniond(Eigen::AngleAxisd(p.rotation_deg * kDegToRad, rotation_axis)))
+          .normalized();
+  sensor_from_cam_true.translation += centre_offset;
+  true_cam_from_sensor_ = sensor_from_cam_true.Inverse();
+
+  true_intrinsics_ = options_.nominal_intrinsics;
+  const double focal_scale = 1.0 + rng.Sign() * p.focal_relative;
+  const double aspect_scale = 1.0 + rng.Sign() * p.aspect_relative;
+  true_intrinsics_.fx *= focal_scale;
+  true_intrinsics_.fy *= focal_scale * aspect_scale;
+  const double pp_angle = rng.Uniform(0.0, 2.0 * std::numbers::pi);
+  true_intrinsics_.cx += p.principal_point_px * std::cos(pp_angle);
+  true_intrinsics_.cy += p.principal_point_px * std::sin(pp_angle);
+  true_intrinsics_.k[0] += rng.Sign() * p.k1;
+  true_intrinsics_.k[1] += rng.Sign() * p.k2;
+  true_intrinsics_.Check();
+  // The lens must stay a bijection over the whole nominal field.
+  const FisheyeCamera true_camera(true_intrinsics_);
+  if (true_camera.MaxValidTheta() < true_intrinsics_.max_theta - 1e-9) {
+    throw std::invalid_argument(
+        "TruePerturbationOptions: k1/k2 fold the true lens inside its field (theta_d stops "
+        "increasing at " +
+        std::to_string(true_camera.MaxValidTheta() / kDegToRad) + " deg)");
+  }
+}
+
+std::string SimRig::Describe() const {
+  if (!options_.mesh_path.empty()) return "mesh " + options_.mesh_path;
+  return std::string(SensorShapeName(options_.shape.shape));
+}
+
+Rigid3d SimRig::nominal_cam_from_sensor() const {
+  return NominalCamFromSensor(options_.camera_z);
+}
+
+Eigen::Vector3d SimRig::BallCenterSensor(const Eigen::Vector3d& machine_position) const {
+  return options_.machine_from_sensor.Inverse() * (machine_position + options_.tool_offset);
+}
+
+Eigen::Vector3d SimRig::MachinePositionForBall(const Eigen::Vector3d& ball_center_sensor) const {
+  return options_.machine_from_sensor * ball_center_sensor - options_.tool_offset;
+}
+
+}  // namespace gs360

@@ -1,0 +1,135 @@
+#pragma once
+// The simulated rig's static description: the sensor (gel outer surface and LED fins), the
+// camera (nominal CAD values and the hidden TRUE values the simulator renders with), and the
+// mount on the virtual CNC.
+//
+// Frames (see docs/architecture.md): sensor S (origin at the centre of the base plane, +z toward
+// the tip), camera C (OpenCV), machine M (GRBL MPos). Units: mm, rad (degrees only in option
+// names that say so).
+//
+// Nominal vs true: production code is given the NOMINAL intrinsics and cam_from_sensor (what the
+// CAD says, SimRig::nominal_*()); the simulator renders with TRUE values that differ from them by
+// a seeded perturbation of fixed size (TruePerturbationOptions). The true values are reachable
+// only through sim/ground_truth.h, which production code never includes.
+//
+// Default geometry: the cylinder-with-cap sensor (radius 10 mm, height 30 mm), fins 0.45 mm thick
+// from z = 1.5 mm up (1.5 mm inside the outer surface), camera on the axis at z = -1.5 mm looking
+// +z: the camera sits 3 mm below the fins' bottom edge, so the fins, seen almost edge-on, cross
+// the image as a grey cross covering ~10% of the image circle (paper, Sec. "Occlusions"), and
+// every ray of the 160-degree field lands on the gel (the rim ray at 80 deg meets the wall at
+// z ~ 0.3 mm).
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <memory>
+#include <string>
+
+#include "geometry/bvh.h"
+#include "geometry/fisheye.h"
+#include "geometry/mesh.h"
+#include "geometry/rigid3.h"
+#include "geometry/shapes.h"
+
+namespace gs360 {
+
+// How far the TRUE camera is from the nominal one. Magnitudes are fixed; directions and signs
+// are drawn from SimRigOptions::seed. Defaults: the camera centre 0.3 mm away from the nominal
+// one (random direction), its orientation 1.0 deg off (random axis); fx scaled by 1 +- 1.0%, fy by
+// fx's factor +- 0.3%; the principal point 3.0 px away (random direction); k1 = +-0.010,
+// k2 = +-0.003 (k3 = k4 = 0), where the nominal lens is equidistant (k = 0).
+struct TruePerturbationOptions {
+  double translation_mm = 0.3;
+  double rotation_deg = 1.0;
+  double focal_relative = 0.010;
+  double aspect_relative = 0.003;
+  double principal_point_px = 3.0;
+  double k1 = 0.010;
+  double k2 = 0.003;
+  // Throws std::invalid_argument naming the field: negative or non-finite values, rotation >= 90
+  // deg, focal_relative or aspect_relative >= 0.2, k1 or k2 large enough to fold the lens inside
+  // the field (checked by SimRig).
+  void Check() const;
+  // All zeros: the true camera equals the nominal one.
+  static TruePerturbationOptions None();
+};
+
+struct SimRigOptions {
+  // Gel outer surface: the built-in shape, unless mesh_path is set (a mesh in the sensor frame,
+  // closed except at the base opening z = 0; loaded with mesh_load).
+  SensorShapeOptions shape;
+  std::string mesh_path;
+  MeshLoadOptions mesh_load;
+  // LED fins (geometry/shapes.h). For a mesh, the fins follow a surface of revolution fitted
+  // inside the mesh (geometry/shapes.h FitInscribedProfile).
+  FinOptions fins = DefaultFins();
+  // Nominal camera: the default 160-degree 640x480 lens, on the axis at z = camera_z (mm) looking
+  // +z, image x along sensor +x (cam_from_sensor rotation = identity).
+  FisheyeIntrinsics nominal_intrinsics = FisheyeIntrinsics::Default160();
+  double camera_z = -1.5;
+  TruePerturbationOptions perturbation;
+  // Mount: the sensor upright in the negative-travel space of a CNC that homes to (0, 0, 0)
+  // (travel -200..0 on each axis by default).
+  Rigid3d machine_from_sensor =
+      Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(-100.0, -100.0, -150.0));
+  // Ball centre = machine position + tool_offset (machine frame, mm).
+  Eigen::Vector3d tool_offset = Eigen::Vector3d(0.0, 0.0, -40.0);
+  double ball_radius = 2.0;  // mm
+  std::uint64_t seed = 1;    // draws the true-camera perturbation
+
+  static FinOptions DefaultFins();
+  // Throws std::invalid_argument naming the field and its value (delegates to the nested
+  // options' Check()); camera_z must be below the fins' bottom edge and ball_radius > 0.
+  void Check() const;
+};
+
+// The built rig: meshes, profile, nominal and (privately) true camera. Immutable and thread-safe
+// after construction.
+class SimRig {
+ public:
+  // Builds the gel mesh (built-in shape or LoadMesh(mesh_path); MeshError propagates), the fins,
+  // the BVHs, and the true camera. Throws std::invalid_argument for invalid options or a lens
+  // that the perturbation folds inside the field.
+  explicit SimRig(const SimRigOptions& options);
+
+  const SimRigOptions& options() const { return options_; }
+  // Gel outer surface (sensor frame, outward normals) and both fins (triangles [0, n/2) are the
+  // xz fin, [n/2, n) the yz fin).
+  const TriangleMesh& gel_mesh() const { return gel_bvh_->mesh(); }
+  const TriangleMesh& fin_mesh() const { return fin_bvh_->mesh(); }
+  const Bvh& gel_bvh() const { return *gel_bvh_; }
+  const Bvh& fin_bvh() const { return *fin_bvh_; }
+  // The surface of revolution the fins and LEDs are laid out on: the built-in profile, or the one
+  // fitted inside a loaded mesh.
+  const RevolutionProfile& profile() const { return *profile_; }
+  std::shared_ptr<const RevolutionProfile> profile_ptr() const { return profile_; }
+  // "cylinder", "cone", "spline" or the mesh path.
+  std::string Describe() const;
+
+  // What production code is given (config).
+  const FisheyeIntrinsics& nominal_intrinsics() const { return options_.nominal_intrinsics; }
+  Rigid3d nominal_cam_from_sensor() const;
+  const Rigid3d& machine_from_sensor() const { return options_.machine_from_sensor; }
+  const Eigen::Vector3d& tool_offset() const { return options_.tool_offset; }
+  double ball_radius() const { return options_.ball_radius; }
+
+  // Ball centre in the sensor frame for a machine position (MPos, mm).
+  Eigen::Vector3d BallCenterSensor(const Eigen::Vector3d& machine_position) const;
+  // Machine position that puts the ball centre at `ball_center_sensor`.
+  Eigen::Vector3d MachinePositionForBall(const Eigen::Vector3d& ball_center_sensor) const;
+
+ private:
+  friend class SimGroundTruth;
+
+  SimRigOptions options_;
+  std::shared_ptr<const RevolutionProfile> profile_;
+  std::unique_ptr<Bvh> gel_bvh_;
+  std::unique_ptr<Bvh> fin_bvh_;
+  FisheyeIntrinsics true_intrinsics_;
+  Rigid3d true_cam_from_sensor_;
+};
+
+// Nominal cam_from_sensor for a camera on the axis at height camera_z looking +z (rotation
+// identity: image x = sensor x, image y = sensor y).
+Rigid3d NominalCamFromSensor(double camera_z);
+
+}  // namespace gs360

@@ -1,0 +1,1631 @@
+#include "sim/virtual_cnc.h"
+
+#include <fcntl.h>
+#include <poll.h>
+#include <pthread.h>
+#include <signal.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <array>
+#include <cerrno>
+#include <cmath>
+#include <condition_variable>
+#include <cstring>
+#include <deque>
+#include <iostream>
+#include <mutex>
+#include <random>
+#include <sstream>
+#include <stdexcept>
+#include <thread>
+
+#include "sim/grbl_gcode.h"
+#include "sim/pty.h"
+
+namespace gs360 {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+constexpr char kWelcome[] = "\r\nGrbl 1.1h ['$' for help]\r\n";
+constexpr char kVersionBuild[] = "1.1h.20190825";
+constexpr std::size_t kLineBufferSize = 80;  // LINE_BUFFER_SIZE: 79 characters per line
+constexpr double kDwellTimeStep = 0.050;     // DWELL_TIME_STEP (s)
+constexpr double kHomingSearchScalar = 1.5;  // HOMING_AXIS_SEARCH_SCALAR
+constexpr int kWcoRefreshBusy = 30, kWcoRefreshIdle = 10;  // REPORT_WCO_REFRESH_*_COUNT
+constexpr int kOvrRefreshBusy = 20, kOvrRefreshIdle = 10;  // REPORT_OVR_REFRESH_*_COUNT
+constexpr double kMmPerInch = 25.4;
+constexpr auto kHupPollInterval = std::chrono::milliseconds(20);
+
+// Wall time -> machine time. A constant scale, or (instant mode, scale 0) a staircase that
+// jumps whenever the controller completes motion or a dwell.
+class MachineClock {
+ public:
+  MachineClock(double scale, Clock::time_point start) : scale_(scale) {
+    segments_.push_back({start, 0.0});
+  }
+
+  bool instant() const { return scale_ <= 0.0; }
+
+  double At(Clock::time_point w) const {
+    auto it =
+        std::upper_bound(segments_.begin(), segments_.end(), w,
+                         [](Clock::time_point value, const Segment& s) { return value < s.wall; });
+    if (it != segments_.begin()) --it;
+    if (instant()) return it->machine;
+    return it->machine + std::chrono::duration<double>(w - it->wall).count() * scale_;
+  }
+
+  // The wall instant at which machine time m is reached (now-ish in instant mode).
+  Clock::time_point WallAt(double m) const {
+    const Segment& s = segments_.back();
+    if (instant()) return s.wall;
+    return s.wall + std::chrono::duration_cast<Clock::duration>(
+                        std::chrono::duration<double>((m - s.machine) / scale_));
+  }
+
+  void JumpTo(Clock::time_point w, double m) {
+    if (!instant() || m <= At(w)) return;
+    segments_.push_back({w, m});
+    while (segments_.size() > 65536) segments_.pop_front();
+  }
+
+ private:
+  struct Segment {
+    Clock::time_point wall;
+    double machine;
+  };
+  double scale_;
+  std::deque<Segment> segments_;
+};
+
+std::string StatusLine(int code) {
+  return code == kGrblOk ? std::string("ok\r\n") : "error:" + std::to_string(code) + "\r\n";
+}
+
+}  // namespace
+
+const char* GrblStateName(GrblState state) {
+  switch (state) {
+    case GrblState::kIdle:
+      return "Idle";
+    case GrblState::kRun:
+      return "Run";
+    case GrblState::kHold:
+      return "Hold";
+    case GrblState::kJog:
+      return "Jog";
+    case GrblState::kAlarm:
+      return "Alarm";
+    case GrblState::kDoor:
+      return "Door";
+    case GrblState::kCheck:
+      return "Check";
+    case GrblState::kHome:
+      return "Home";
+    case GrblState::kSleep:
+      return "Sleep";
+  }
+  return "?";
+}
+
+void VirtualCncOptions::Check() const {
+  auto fail = [](const std::string& field, const std::string& value, const char* what) {
+    throw std::invalid_argument("VirtualCncOptions." + field + " " + what + ", got " + value);
+  };
+  if (!(time_scale >= 0.0) || !std::isfinite(time_scale)) {
+    fail("time_scale", std::to_string(time_scale), "must be >= 0 (0 = instant)");
+  }
+  if (rx_buffer_bytes < 16 || rx_buffer_bytes > 65535) {
+    fail("rx_buffer_bytes", std::to_string(rx_buffer_bytes), "must be in 16..65535");
+  }
+  if (planner_blocks < 1 || planner_blocks > 255) {
+    fail("planner_blocks", std::to_string(planner_blocks), "must be in 1..255");
+  }
+  if (baud_rate < 0) fail("baud_rate", std::to_string(baud_rate), "must be >= 0 (0 = no pacing)");
+  if (!initial_true_position.allFinite())
+    fail("initial_true_position", "non-finite", "must be finite");
+  if (boot_delay.count() < 0)
+    fail("boot_delay", std::to_string(boot_delay.count()), "must be >= 0");
+  if (!(lost_position_max_mm >= 0.0)) {
+    fail("lost_position_max_mm", std::to_string(lost_position_max_mm), "must be >= 0");
+  }
+  if (history_pieces < 16) fail("history_pieces", std::to_string(history_pieces), "must be >= 16");
+  settings.Check();
+}
+
+class VirtualCnc::Impl {
+ public:
+  explicit Impl(const VirtualCncOptions& options);
+  ~Impl() { Stop(); }
+
+  void Stop();
+  std::string PtyPath() const {
+    std::lock_guard<std::mutex> lk(mu_);
+    return plugged_ ? pty_.slave_path() : std::string();
+  }
+  const VirtualCncOptions& options() const { return options_; }
+
+  Eigen::Vector3d TruePosition(Clock::time_point t) const {
+    std::lock_guard<std::mutex> lk(mu_);
+    return exec_.PositionAt(clock_.At(t));
+  }
+  double TrueSpeed(Clock::time_point t) const {
+    std::lock_guard<std::mutex> lk(mu_);
+    return exec_.SpeedAt(clock_.At(t));
+  }
+  std::vector<MotionPiece> TrueTrajectory(Clock::time_point from, Clock::time_point to) const {
+    std::lock_guard<std::mutex> lk(mu_);
+    return exec_.History(clock_.At(from), clock_.At(to));
+  }
+  double MachineTime(Clock::time_point t) const {
+    std::lock_guard<std::mutex> lk(mu_);
+    return clock_.At(t);
+  }
+  Eigen::Vector3d ReportedPosition() const {
+    std::lock_guard<std::mutex> lk(mu_);
+    return Belief();
+  }
+  GrblState State() const {
+    std::lock_guard<std::mutex> lk(mu_);
+    return state_;
+  }
+  GrblSettings Settings() const {
+    std::lock_guard<std::mutex> lk(mu_);
+    return settings_;
+  }
+  int PlannerBlocksQueued() const {
+    std::lock_guard<std::mutex> lk(mu_);
+    return exec_.BlockCount();
+  }
+  int RxBufferUsed() const {
+    std::lock_guard<std::mutex> lk(mu_);
+    return static_cast<int>(rx_.size());
+  }
+  VirtualCncStats Stats() const {
+    std::lock_guard<std::mutex> lk(mu_);
+    return stats_;
+  }
+
+  void DropNextBytes(std::size_t n, FaultDirection d) {
+    std::lock_guard<std::mutex> lk(mu_);
+    if (d != FaultDirection::kCncToHost) to_cnc_.drop_next += n;
+    if (d != FaultDirection::kHostToCnc) to_host_.drop_next += n;
+  }
+  void SetDropProbability(double p, FaultDirection d) {
+    if (!(p >= 0.0 && p <= 1.0)) {
+      throw std::invalid_argument("SetDropProbability: p must be in [0, 1], got " +
+                                  std::to_string(p));
+    }
+    std::lock_guard<std::mutex> lk(mu_);
+    if (d != FaultDirection::kCncToHost) to_cnc_.drop_probability = p;
+    if (d != FaultDirection::kHostToCnc) to_host_.drop_probability = p;
+  }
+  void GarbleNextBytes(std::size_t n, FaultDirection d) {
+    std::lock_guard<std::mutex> lk(mu_);
+    if (d != FaultDirection::kCncToHost) to_cnc_.garble_next += n;
+    if (d != FaultDirection::kHostToCnc) to_host_.garble_next += n;
+  }
+  void StallReplies(std::chrono::milliseconds duration) {
+    std::lock_guard<std::mutex> lk(mu_);
+    stall_until_ = std::max(stall_until_, Clock::now() + duration);
+    WakeIo();
+  }
+  void Unplug(const UnplugOptions& unplug);
+  void Replug() {
+    std::lock_guard<std::mutex> lk(mu_);
+    ReplugLocked();
+  }
+  bool Plugged() const {
+    std::lock_guard<std::mutex> lk(mu_);
+    return plugged_;
+  }
+  void RaiseAlarmDuringNextMove(int code, double fraction) {
+    if (code < 1 || code > 255 || !(fraction >= 0.0 && fraction <= 1.0)) {
+      throw std::invalid_argument(
+          "RaiseAlarmDuringNextMove: code must be 1..255 and fraction in [0, 1], got " +
+          std::to_string(code) + ", " + std::to_string(fraction));
+    }
+    std::lock_guard<std::mutex> lk(mu_);
+    armed_alarm_ = ArmedAlarm{code, fraction};
+  }
+  void LosePositionOnReset(bool lose) {
+    std::lock_guard<std::mutex> lk(mu_);
+    lose_position_ = lose;
+  }
+
+ private:
+  using Lock = std::unique_lock<std::mutex>;
+  struct LinkFaults {
+    std::size_t drop_next = 0;
+    std::size_t garble_next = 0;
+    double drop_probability = 0.0;
+  };
+
+  // ----- clock, motion, positions (mu_ held) -----
+  double MachineNow() const { return clock_.At(Clock::now()); }
+  Eigen::Vector3d Quantize(const Eigen::Vector3d& p) const {
+    Eigen::Vector3d q;
+    for (int i = 0; i < 3; ++i) {
+      q[i] = static_cast<double>(std::lround(p[i] * settings_.steps_per_mm[i])) /
+             settings_.steps_per_mm[i];
+    }
+    return q;
+  }
+  Eigen::Vector3d Belief() const { return Quantize(exec_.PositionAt(MachineNow()) - offset_); }
+  void UpdateMotion();
+  void LosePosition();
+
+  // ----- "ISR" side (mu_ held) -----
+  void OnHostByte(unsigned char c);
+  void McReset();
+  void WakeIo() {
+    const char b = 1;
+    [[maybe_unused]] ssize_t n = ::write(wake_[1], &b, 1);
+  }
+  void Emit(const std::string& s);
+
+  // ----- power (mu_ held) -----
+  void PowerOn();
+  void PowerOff();
+  void ReplugLocked();
+
+  // ----- firmware thread -----
+  void FirmwareMain();
+  void InitAfterReset();
+  void ProtocolMainLoop(Lock& lk);
+  bool Aborting() const { return rt_reset_ || stop_ || !powered_ || boot_id_ != running_boot_; }
+  void Wait(Lock& lk, double deadline = std::numeric_limits<double>::infinity());
+  void ExecuteRealtime(Lock& lk);
+  void RtSystem(Lock& lk);
+  bool Suspended() const { return hold_complete_ || state_ == GrblState::kSleep; }
+  void AutoCycleStart();
+  void Synchronize(Lock& lk);
+  void ReportStatus();
+  std::string AxisValues(const Eigen::Vector3d& v) const;
+  int SystemExecuteLine(Lock& lk, const std::string& line);
+  int GcExecuteLine(Lock& lk, const std::string& line);
+  void ExecuteStartupLines(Lock& lk);
+  void McLine(Lock& lk, const Eigen::Vector3d& target, const MoveRate& rate);
+  void McArc(Lock& lk, const GcodeBlock& blk, const MoveRate& rate);
+  void McDwell(Lock& lk, double seconds);
+  void MachineDelay(Lock& lk, double seconds);  // uninterruptible except by abort (homing)
+  int McProbeCycle(Lock& lk, const GcodeBlock& blk, const MoveRate& rate);
+  bool TravelOk(const Eigen::Vector3d& target) const;
+  void LimitsSoftCheck(Lock& lk, const Eigen::Vector3d& target);
+  void FlagWcoChange(Lock& lk) {
+    Synchronize(lk);
+    wco_counter_ = 0;
+  }
+  void HomingCycle(Lock& lk);
+  bool HomeAxes(Lock& lk, const std::vector<int>& axes);
+  bool HomingMove(Lock& lk, const Eigen::Vector3d& target, double rate, bool abrupt);
+  double SpindleRpm() const;
+
+  // ----- I/O thread -----
+  void IoMain();
+  void ReadFromHost(int fd);
+  void PaceRx(Clock::time_point now);  // bytes from the host reach the UART at the baud rate
+  void PaceTx(Clock::time_point now);  // and leave it at the baud rate
+
+  const VirtualCncOptions options_;
+  mutable std::mutex mu_;
+  std::condition_variable cv_;     // firmware wake-ups
+  std::condition_variable io_cv_;  // I/O thread acknowledgements
+  MachineClock clock_;
+  MotionExecutor exec_;
+
+  // EEPROM.
+  GrblSettings settings_;
+  CoordinateData coords_;
+  std::array<std::string, 2> startup_lines_;
+  std::string build_info_;
+
+  // System state.
+  GrblState state_ = GrblState::kIdle;
+  GcodeState gc_;
+  Eigen::Vector3d offset_ = Eigen::Vector3d::Zero();  // true - belief
+  Eigen::Vector3d probe_position_ = Eigen::Vector3d::Zero();
+  bool probe_succeeded_ = false;
+  bool abort_ = false;
+  bool hold_complete_ = false;  // SUSPEND_HOLD_COMPLETE
+  bool jog_cancel_ = false;     // SUSPEND_JOG_CANCEL
+  bool soft_limit_ = false;
+  bool cycle_stop_ = false;
+  int wco_counter_ = 0;
+  int ovr_counter_ = 0;
+  // Real-time flags set by the ISR side.
+  bool rt_reset_ = false;
+  bool rt_status_ = false;
+  bool rt_cycle_start_ = false;
+  bool rt_feed_hold_ = false;
+  bool rt_motion_cancel_ = false;
+  bool rt_sleep_ = false;
+  int rt_alarm_ = 0;
+  std::deque<char> rx_;
+
+  // Power and link.
+  bool powered_ = false;
+  std::uint64_t boot_id_ = 0;       // incremented at every power-up
+  std::uint64_t running_boot_ = 0;  // the power-up the firmware loop is running for
+  std::optional<Clock::time_point> boot_at_;
+  bool stop_ = false;
+  Pty pty_;
+  bool plugged_ = false;
+  bool close_request_ = false;
+  bool host_open_ = false;
+  std::optional<Clock::time_point> replug_at_;
+  int wake_[2] = {-1, -1};
+  std::string rx_line_;  // bytes read from the pty, not yet through the UART
+  Clock::time_point rx_clock_{};
+  std::string tx_;  // replies not yet through the UART
+  Clock::time_point tx_clock_{};
+  std::string wire_;             // bytes past the UART and the fault filter, being written
+  Clock::duration byte_time_{};  // 10 bits per byte at the baud rate (0: no pacing)
+
+  // Faults.
+  std::mt19937_64 rng_;
+  LinkFaults to_cnc_, to_host_;
+  Clock::time_point stall_until_{};
+  std::optional<ArmedAlarm> armed_alarm_;
+  bool lose_position_ = false;
+
+  VirtualCncStats stats_;
+  std::thread firmware_, io_;
+};
+
+VirtualCnc::Impl::Impl(const VirtualCncOptions& options)
+    : options_(options),
+      clock_(options.time_scale, Clock::now()),
+      exec_(MotionExecutor::Options{options.planner_blocks, options.history_pieces},
+            options.initial_true_position, 0.0),
+      settings_(options.settings),
+      rng_(options.seed) {
+  if (options_.baud_rate > 0) {
+    byte_time_ = std::chrono::duration_cast<Clock::duration>(
+        std::chrono::duration<double>(10.0 / options_.baud_rate));
+  }
+  exec_.SetLimits(settings_.Limits());
+  if (::pipe2(wake_, O_NONBLOCK | O_CLOEXEC) != 0) {
+    throw std::runtime_error(std::string("VirtualCnc: pipe2 failed: ") + std::strerror(errno));
+  }
+  try {
+    pty_ = Pty::Open();
+    if (!options_.symlink_path.empty()) ReplaceSymlink(pty_.slave_path(), options_.symlink_path);
+  } catch (...) {
+    ::close(wake_[0]);
+    ::close(wake_[1]);
+    throw;
+  }
+  plugged_ = true;
+  PowerOn();
+  firmware_ = std::thread([this] { FirmwareMain(); });
+  io_ = std::thread([this] { IoMain(); });
+}
+
+void VirtualCnc::Impl::Stop() {
+  {
+    std::lock_guard<std::mutex> lk(mu_);
+    if (stop_ && !firmware_.joinable() && !io_.joinable()) return;
+    stop_ = true;
+    cv_.notify_all();
+    io_cv_.notify_all();
+    WakeIo();
+  }
+  if (firmware_.joinable()) firmware_.join();
+  if (io_.joinable()) io_.join();
+  std::lock_guard<std::mutex> lk(mu_);
+  pty_.Close();
+  plugged_ = false;
+  if (!options_.symlink_path.empty()) ::unlink(options_.symlink_path.c_str());
+  if (wake_[0] >= 0) ::close(wake_[0]);
+  if (wake_[1] >= 0) ::close(wake_[1]);
+  wake_[0] = wake_[1] = -1;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Power and link.
+
+void VirtualCnc::Impl::PowerOn() {
+  powered_ = true;
+  ++boot_id_;
+  ++stats_.boots;
+  const double m = MachineNow();
+  exec_.Stop(m);
+  offset_ = exec_.PositionAt(m);  // the controller wakes up believing it is at 0,0,0
+  state_ = settings_.homing_enable ? GrblState::kAlarm : GrblState::kIdle;  // HOMING_INIT_LOCK
+  boot_at_ = Clock::now() + options_.boot_delay;
+  cv_.notify_all();
+}
+
+void VirtualCnc::Impl::PowerOff() {
+  powered_ = false;
+  exec_.Stop(MachineNow());  // the machine stops dead where it is
+  rx_.clear();
+  rx_line_.clear();
+  cv_.notify_all();
+}
+
+void VirtualCnc::Impl::Unplug(const UnplugOptions& unplug) {
+  Lock lk(mu_);
+  if (!plugged_ || stop_) return;
+  close_request_ = true;  // the I/O thread owns the fd: it closes it
+  WakeIo();
+  io_cv_.wait(lk, [&] { return !close_request_ || stop_; });
+  if (stop_) return;
+  tx_.clear();
+  wire_.clear();
+  if (!options_.symlink_path.empty()) ::unlink(options_.symlink_path.c_str());
+  if (unplug.power_loss) PowerOff();
+  if (unplug.replug_after) replug_at_ = Clock::now() + *unplug.replug_after;
+  WakeIo();
+}
+
+void VirtualCnc::Impl::ReplugLocked() {
+  if (plugged_ || stop_) return;
+  const std::string old_path = pty_.slave_path();
+  Pty fresh = Pty::Open(old_path);
+  pty_ = std::move(fresh);
+  plugged_ = true;
+  host_open_ = false;
+  replug_at_.reset();
+  if (!options_.symlink_path.empty()) ReplaceSymlink(pty_.slave_path(), options_.symlink_path);
+  if (!powered_) PowerOn();
+  WakeIo();
+  cv_.notify_all();
+}
+
+// ---------------------------------------------------------------------------------------------
+// The "ISR" side: bytes from the host.
+
+void VirtualCnc::Impl::OnHostByte(unsigned char c) {
+  if (to_cnc_.drop_next > 0) {
+    --to_cnc_.drop_next;
+    ++stats_.injected_drops;
+    return;
+  }
+  if (to_cnc_.drop_probability > 0.0 &&
+      std::uniform_real_distribution<double>(0.0, 1.0)(rng_) < to_cnc_.drop_probability) {
+    ++stats_.injected_drops;
+    return;
+  }
+  if (to_cnc_.garble_next > 0) {
+    --to_cnc_.garble_next;
+    ++stats_.injected_garbles;
+    c = static_cast<unsigned char>(c ^ (1u << (rng_() % 7)));
+  }
+  if (!powered_) return;
+  switch (c) {
+    case 0x18:
+      McReset();
+      break;
+    case '?':
+      rt_status_ = true;
+      break;
+    case '~':
+      rt_cycle_start_ = true;
+      break;
+    case '!':
+      rt_feed_hold_ = true;
+      break;
+    default:
+      if (c > 0x7F) {
+        if (c == 0x85 && state_ == GrblState::kJog) rt_motion_cancel_ = true;  // jog cancel
+        // Other extended real-time bytes (overrides, safety door) are not modelled: discarded.
+      } else if (rx_.size() < static_cast<std::size_t>(options_.rx_buffer_bytes)) {
+        rx_.push_back(static_cast<char>(c));
+      } else {
+        ++stats_.rx_overflow_dropped;
+      }
+  }
+  cv_.notify_all();
+}
+
+void VirtualCnc::Impl::McReset() {
+  if (rt_reset_) return;
+  rt_reset_ = true;
+  ++stats_.resets;
+  const bool in_motion = state_ == GrblState::kRun || state_ == GrblState::kHome ||
+                         state_ == GrblState::kJog ||
+                         (state_ == GrblState::kHold && !hold_complete_);
+  if (in_motion) {
+    if (state_ == GrblState::kHome) {
+      if (!rt_alarm_) rt_alarm_ = kGrblAlarmHomingFailReset;
+    } else {
+      rt_alarm_ = kGrblAlarmAbortCycle;
+    }
+    exec_.Stop(MachineNow());  // steppers killed: position likely lost
+    if (lose_position_) LosePosition();
+  }
+  cv_.notify_all();
+}
+
+void VirtualCnc::Impl::LosePosition() {
+  std::uniform_real_distribution<double> u(-options_.lost_position_max_mm,
+                                           options_.lost_position_max_mm);
+  for (int i = 0; i < 3; ++i) offset_[i] += u(rng_);
+}
+
+void VirtualCnc::Impl::Emit(const std::string& s) {
+  if (!plugged_ || !powered_) return;
+  if (options_.reset_on_open && !host_open_) return;  // nobody listening: lost
+  if (tx_.empty()) tx_clock_ = std::max(tx_clock_, Clock::now());
+  tx_ += s;
+  WakeIo();
+}
+
+// ---------------------------------------------------------------------------------------------
+// I/O thread.
+
+void VirtualCnc::Impl::IoMain() {
+  bool hup = true;  // no host has the slave open yet
+  int last_fd = -1;
+  while (true) {
+    int fd = -1;
+    bool want_write = false;
+    int timeout_ms = -1;
+    {
+      Lock lk(mu_);
+      if (stop_) return;
+      if (close_request_) {
+        pty_.Close();
+        plugged_ = false;
+        host_open_ = false;
+        close_request_ = false;
+        rx_line_.clear();
+        io_cv_.notify_all();
+      }
+      const Clock::time_point now = Clock::now();
+      if (replug_at_ && now >= *replug_at_) {
+        try {
+          ReplugLocked();
+        } catch (const std::exception& e) {
+          std::cerr << "virtual CNC: replug failed: " << e.what() << "\n";
+          replug_at_ = now + std::chrono::milliseconds(100);
+        }
+      }
+      if (plugged_) fd = pty_.master_fd();
+      if (fd != last_fd) {
+        hup = true;
+        last_fd = fd;
+      }
+      PaceRx(now);
+      PaceTx(now);
+      want_write = fd >= 0 && !wire_.empty();
+      auto limit = [&](Clock::time_point when) {
+        const auto us = std::chrono::duration_cast<std::chrono::microseconds>(when - now).count();
+        const int v = static_cast<int>(std::clamp<long long>((us + 999) / 1000, 0, 1000000));
+        timeout_ms = timeout_ms < 0 ? v : std::min(timeout_ms, v);
+      };
+      if (!rx_line_.empty()) limit(rx_clock_ + byte_time_);
+      if (!tx_.empty()) limit(std::max(tx_clock_ + byte_time_, stall_until_));
+      if (replug_at_) limit(*replug_at_);
+      if (fd >= 0 && hup) limit(now + kHupPollInterval);
+    }
+    pollfd fds[2];
+    fds[0] = {wake_[0], POLLIN, 0};
+    int nfds = 1;
+    if (fd >= 0 && !hup) {
+      fds[1] = {fd, static_cast<short>(POLLIN | (want_write ? POLLOUT : 0)), 0};
+      nfds = 2;
+    }
+    ::poll(fds, static_cast<nfds_t>(nfds), timeout_ms);
+    if (fds[0].revents & POLLIN) {
+      char buf[64];
+      while (::read(wake_[0], buf, sizeof(buf)) > 0) {
+      }
+    }
+    if (fd < 0) continue;
+    pollfd probe = {fd, static_cast<short>(POLLIN | (want_write ? POLLOUT : 0)), 0};
+    ::poll(&probe, 1, 0);
+    Lock lk(mu_);
+    if (stop_ || close_request_ || !plugged_ || pty_.master_fd() != fd) continue;
+    const bool now_hup = (probe.revents & POLLHUP) != 0;
+    if (now_hup && host_open_) host_open_ = false;
+    if (!now_hup && !host_open_) {
+      host_open_ = true;
+      if (options_.reset_on_open) {  // DTR pulse resets the board
+        PowerOff();
+        PowerOn();
+      }
+    }
+    hup = now_hup;
+    if (probe.revents & POLLIN) ReadFromHost(fd);
+    if (!wire_.empty() && (probe.revents & POLLOUT)) {
+      const ssize_t n = ::write(fd, wire_.data(), wire_.size());
+      if (n > 0) wire_.erase(0, static_cast<std::size_t>(n));
+    }
+  }
+}
+
+void VirtualCnc::Impl::ReadFromHost(int fd) {
+  char buf[256];
+  const ssize_t n = ::read(fd, buf, sizeof(buf));
+  if (n <= 0) return;
+  stats_.bytes_from_host += static_cast<std::uint64_t>(n);
+  if (rx_line_.empty()) rx_clock_ = std::max(rx_clock_, Clock::now());
+  rx_line_.append(buf, static_cast<std::size_t>(n));
+  PaceRx(Clock::now());
+}
+
+void VirtualCnc::Impl::PaceRx(Clock::time_point now) {
+  std::size_t n = 0;
+  while (n < rx_line_.size() && (byte_time_.count() == 0 || rx_clock_ + byte_time_ <= now)) {
+    rx_clock_ += byte_time_;
+    OnHostByte(static_cast<unsigned char>(rx_line_[n]));
+    ++n;
+  }
+  rx_line_.erase(0, n);
+}
+
+void VirtualCnc::Impl::PaceTx(Clock::time_point now) {
+  if (now < stall_until_) return;
+  if (tx_clock_ < stall_until_) tx_clock_ = stall_until_;
+  std::size_t n = 0;
+  while (n < tx_.size() && (byte_time_.count() == 0 || tx_clock_ + byte_time_ <= now)) {
+    tx_clock_ += byte_time_;
+    unsigned char c = static_cast<unsigned char>(tx_[n++]);
+    if (to_host_.drop_next > 0) {
+      --to_host_.drop_next;
+      ++stats_.injected_drops;
+      continue;
+    }
+    if (to_host_.drop_probability > 0.0 &&
+        std::uniform_real_distribution<double>(0.0, 1.0)(rng_) < to_host_.drop_probability) {
+      ++stats_.injected_drops;
+      continue;
+    }
+    if (to_host_.garble_next > 0) {
+      --to_host_.garble_next;
+      ++stats_.injected_garbles;
+      c = static_cast<unsigned char>(c ^ (1u << (rng_() % 7)));
+    }
+    wire_.push_back(static_cast<char>(c));
+  }
+  tx_.erase(0, n);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Firmware thread: main() and protocol_main_loop().
+
+void VirtualCnc::Impl::FirmwareMain() {
+  Lock lk(mu_);
+  while (!stop_) {
+    if (!powered_) {
+      cv_.wait(lk, [&] { return stop_ || powered_; });
+      continue;
+    }
+    if (boot_at_) {
+      const Clock::time_point boot = *boot_at_;
+      boot_at_.reset();
+      cv_.wait_until(lk, boot, [&] { return stop_ || !powered_ || boot_at_.has_value(); });
+      continue;
+    }
+    InitAfterReset();
+    ProtocolMainLoop(lk);
+  }
+}
+
+void VirtualCnc::Impl::InitAfterReset() {
+  running_boot_ = boot_id_;
+  abort_ = false;
+  rt_reset_ = rt_status_ = rt_cycle_start_ = rt_feed_hold_ = rt_motion_cancel_ = rt_sleep_ = false;
+  rt_alarm_ = 0;
+  hold_complete_ = jog_cancel_ = soft_limit_ = cycle_stop_ = false;
+  rx_.clear();
+  exec_.Stop(MachineNow());  // plan_reset(), st_reset()
+  gc_ = GcodeState();
+  gc_.coord_system = coords_.wcs[0];
+  gc_.position = Belief();  // gc_sync_position()
+  wco_counter_ = ovr_counter_ = 0;
+  Emit(kWelcome);
+}
+
+void VirtualCnc::Impl::ProtocolMainLoop(Lock& lk) {
+  if (state_ == GrblState::kAlarm || state_ == GrblState::kSleep) {
+    Emit("[MSG:'$H'|'$X' to unlock]\r\n");
+    state_ = GrblState::kAlarm;
+  } else {
+    state_ = GrblState::kIdle;
+    ExecuteStartupLines(lk);
+    if (abort_ || Aborting()) return;
+  }
+  std::string line;
+  bool overflow = false, paren = false, semicolon = false;
+  while (true) {
+    while (!rx_.empty()) {
+      const char c = rx_.front();
+      rx_.pop_front();
+      if (c == '\n' || c == '\r') {
+        ExecuteRealtime(lk);
+        if (abort_) return;
+        int status = kGrblOk;
+        if (overflow) {
+          status = kGrblOverflow;
+        } else if (line.empty()) {
+          status = kGrblOk;  // empty or comment line
+        } else if (line[0] == '$') {
+          status = SystemExecuteLine(lk, line);
+        } else if (state_ == GrblState::kAlarm || state_ == GrblState::kJog) {
+          status = kGrblSystemGcLock;
+        } else {
+          status = GcExecuteLine(lk, line);
+        }
+        ++stats_.lines;
+        if (status != kGrblOk) ++stats_.errors;
+        Emit(StatusLine(status));
+        line.clear();
+        overflow = paren = semicolon = false;
+        if (abort_ || Aborting()) {
+          ExecuteRealtime(lk);
+          if (abort_) return;
+        }
+      } else if (overflow || paren || semicolon) {
+        if (c == ')' && paren) paren = false;
+      } else if (static_cast<unsigned char>(c) <= ' ') {
+        // whitespace and control characters
+      } else if (c == '/') {
+        // block delete: not supported, ignored
+      } else if (c == '(') {
+        paren = true;
+      } else if (c == ';') {
+        semicolon = true;
+      } else if (line.size() >= kLineBufferSize - 1) {
+        overflow = true;
+      } else if (c >= 'a' && c <= 'z') {
+        line.push_back(static_cast<char>(c - 'a' + 'A'));
+      } else {
+        line.push_back(c);
+      }
+    }
+    AutoCycleStart();
+    ExecuteRealtime(lk);
+    if (abort_) return;
+    if (rx_.empty()) Wait(lk);
+  }
+}
+
+void VirtualCnc::Impl::Wait(Lock& lk, double deadline) {
+  if (stop_) return;
+  const double next = std::min(exec_.NextEventTime(), deadline);
+  if (std::isfinite(next) && !clock_.instant()) {
+    cv_.wait_until(lk, clock_.WallAt(next) + std::chrono::microseconds(20));
+  } else if (std::isfinite(next)) {
+    return;  // instant mode: the caller advances the clock
+  } else {
+    cv_.wait(lk);
+  }
+}
+
+void VirtualCnc::Impl::UpdateMotion() {
+  double m = MachineNow();
+  if (clock_.instant() && exec_.Running()) {
+    const double end = exec_.FinishTime();
+    if (end > m) {
+      clock_.JumpTo(Clock::now(), end);
+      m = clock_.At(Clock::now());
+    }
+  }
+  exec_.AdvanceTo(m);
+  if (std::optional<FiredAlarm> fired = exec_.TakeFiredAlarm()) {
+    // An injected fault (e.g. a limit switch) stopped the steppers dead: mc_reset() + alarm.
+    rt_alarm_ = fired->code;
+    if (!rt_reset_) ++stats_.resets;
+    rt_reset_ = true;
+    if (lose_position_) LosePosition();
+  }
+  if ((state_ == GrblState::kRun || state_ == GrblState::kJog ||
+       (state_ == GrblState::kHold && !hold_complete_)) &&
+      !exec_.Busy()) {
+    cycle_stop_ = true;
+  }
+}
+
+void VirtualCnc::Impl::ExecuteRealtime(Lock& lk) {
+  RtSystem(lk);
+  if (abort_) return;
+  while (Suspended() && !abort_) {
+    Wait(lk);
+    RtSystem(lk);
+  }
+}
+
+void VirtualCnc::Impl::RtSystem(Lock& lk) {
+  UpdateMotion();
+  if (rt_alarm_) {
+    state_ = GrblState::kAlarm;
+    ++stats_.alarms;
+    Emit("ALARM:" + std::to_string(rt_alarm_) + "\r\n");
+    if (rt_alarm_ == kGrblAlarmHardLimit || rt_alarm_ == kGrblAlarmSoftLimit) {
+      Emit("[MSG:Reset to continue]\r\n");
+      rt_reset_ = false;
+      // Block everything (status reports included, as GRBL 1.1 does) until a reset.
+      cv_.wait(lk, [&] { return Aborting(); });
+    }
+    rt_alarm_ = 0;
+  }
+  if (Aborting()) {
+    abort_ = true;
+    return;
+  }
+  const double m = MachineNow();
+  if (rt_status_) {
+    rt_status_ = false;
+    ReportStatus();
+  }
+  const bool feed_hold = rt_feed_hold_, motion_cancel = rt_motion_cancel_, sleep = rt_sleep_;
+  if (feed_hold || motion_cancel || sleep) {
+    if (!(state_ == GrblState::kAlarm || state_ == GrblState::kCheck)) {
+      if (state_ == GrblState::kRun || state_ == GrblState::kJog) {
+        if (!jog_cancel_ && !exec_.Holding()) {
+          exec_.FeedHold(m);
+          if (state_ == GrblState::kJog && !sleep) jog_cancel_ = true;
+        }
+      }
+      if (state_ == GrblState::kIdle) hold_complete_ = true;
+      if (feed_hold && !(state_ == GrblState::kJog || state_ == GrblState::kSleep)) {
+        state_ = GrblState::kHold;
+      }
+    }
+    if (sleep) {
+      state_ = GrblState::kSleep;
+      Emit("[MSG:Sleeping]\r\n");
+    }
+    rt_feed_hold_ = rt_motion_cancel_ = rt_sleep_ = false;
+  }
+  if (rt_cycle_start_) {
+    rt_cycle_start_ = false;
+    if (!(feed_hold || motion_cancel)) {
+      if (state_ == GrblState::kIdle || (state_ == GrblState::kHold && hold_complete_)) {
+        hold_complete_ = false;
+        if (exec_.BlockCount() > 0) {
+          state_ = GrblState::kRun;
+          if (exec_.Holding()) {
+            exec_.Resume(m);
+          } else {
+            exec_.StartCycle(m);
+          }
+        } else {
+          state_ = GrblState::kIdle;
+        }
+      }
+    }
+  }
+  UpdateMotion();
+  if (cycle_stop_) {
+    cycle_stop_ = false;
+    if (state_ == GrblState::kHold && !soft_limit_ && !jog_cancel_) {
+      hold_complete_ = true;  // plan_cycle_reinitialize(): resume re-plans from rest
+    } else if (state_ == GrblState::kRun || state_ == GrblState::kJog ||
+               state_ == GrblState::kHold) {
+      if (jog_cancel_) {
+        exec_.Stop(MachineNow());  // flush the rest of the jog
+        gc_.position = Belief();
+      }
+      hold_complete_ = false;
+      jog_cancel_ = false;
+      state_ = GrblState::kIdle;
+    }
+  }
+}
+
+void VirtualCnc::Impl::AutoCycleStart() {
+  if (state_ == GrblState::kIdle && exec_.BlockCount() > 0 && !exec_.Running()) {
+    state_ = GrblState::kRun;
+    exec_.StartCycle(MachineNow());
+  }
+}
+
+void VirtualCnc::Impl::Synchronize(Lock& lk) {
+  AutoCycleStart();
+  while (true) {
+    ExecuteRealtime(lk);
+    if (abort_) return;
+    if (!(exec_.BlockCount() > 0 || state_ == GrblState::kRun)) return;
+    AutoCycleStart();
+    Wait(lk);
+  }
+}
+
+std::string VirtualCnc::Impl::AxisValues(const Eigen::Vector3d& v) const {
+  std::string s;
+  for (int i = 0; i < 3; ++i) {
+    if (i) s.push_back(',');
+    s += settings_.report_inches ? FormatGrblFloat(v[i] / kMmPerInch, 4) : FormatGrblFloat(v[i], 3);
+  }
+  return s;
+}
+
+double VirtualCnc::Impl::SpindleRpm() const {
+  if (gc_.modal.spindle == 0) return 0.0;
+  const double rpm = gc_.spindle_speed;
+  if (settings_.spindle_min_rpm >= settings_.spindle_max_rpm || rpm >= settings_.spindle_max_rpm) {
+    return settings_.spindle_max_rpm;
+  }
+  if (rpm <= settings_.spindle_min_rpm) return rpm == 0.0 ? 0.0 : settings_.spindle_min_rpm;
+  return rpm;
+}
+
+void VirtualCnc::Impl::ReportStatus() {
+  std::string s = "<";
+  switch (state_) {
+    case GrblState::kHold:
+      s += jog_cancel_ ? "Jog" : (hold_complete_ ? "Hold:0" : "Hold:1");
+      break;
+    case GrblState::kDoor:
+      s += "Door:0";
+      break;
+    default:
+      s += GrblStateName(state_);
+      break;
+  }
+  Eigen::Vector3d pos = Belief();
+  const Eigen::Vector3d wco = gc_.Wco();
+  const bool mpos = (settings_.status_report_mask & 1) != 0;
+  if (!mpos) pos -= wco;
+  s += mpos ? "|MPos:" : "|WPos:";
+  s += AxisValues(pos);
+  if (settings_.status_report_mask & 2) {
+    s += "|Bf:" + std::to_string(options_.planner_blocks - exec_.BlockCount()) + "," +
+         std::to_string(options_.rx_buffer_bytes - static_cast<int>(rx_.size()));
+  }
+  const double rate = exec_.SpeedAt(MachineNow()) * 60.0;
+  s +=
+      "|FS:" +
+      (settings_.report_inches ? FormatGrblFloat(rate / kMmPerInch, 1) : FormatGrblFloat(rate, 0)) +
+      "," + FormatGrblFloat(SpindleRpm(), 0);
+  if (options_.report_wco_and_overrides) {
+    const bool busy = state_ == GrblState::kHome || state_ == GrblState::kRun ||
+                      state_ == GrblState::kHold || state_ == GrblState::kJog ||
+                      state_ == GrblState::kDoor;
+    if (wco_counter_ > 0) {
+      --wco_counter_;
+    } else {
+      wco_counter_ = (busy ? kWcoRefreshBusy : kWcoRefreshIdle) - 1;
+      if (ovr_counter_ == 0) ovr_counter_ = 1;  // overrides on the next report
+      s += "|WCO:" + AxisValues(wco);
+    }
+    if (ovr_counter_ > 0) {
+      --ovr_counter_;
+    } else {
+      ovr_counter_ = (busy ? kOvrRefreshBusy : kOvrRefreshIdle) - 1;
+      s += "|Ov:100,100,100";
+      if (gc_.modal.spindle != 0 || gc_.modal.coolant != 0) {
+        s += "|A:";
+        if (gc_.modal.spindle == 1) s += "S";
+        if (gc_.modal.spindle == 2) s += "C";
+        if (gc_.modal.coolant & 1) s += "F";
+      }
+    }
+  }
+  s += ">\r\n";
+  Emit(s);
+}
+
+// ---------------------------------------------------------------------------------------------
+// '$' system commands (system_execute_line).
+
+int VirtualCnc::Impl::SystemExecuteLine(Lock& lk, const std::string& line) {
+  if (line.size() == 1) {
+    Emit("[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]\r\n");
+    return kGrblOk;
+  }
+  const char c1 = line[1];
+  switch (c1) {
+    case 'J':
+      if (state_ != GrblState::kIdle && state_ != GrblState::kJog) return kGrblIdleError;
+      if (line.size() < 3 || line[2] != '=') return kGrblInvalidStatement;
+      return GcExecuteLine(lk, line);
+    case '$':
+    case 'G':
+    case 'C':
+    case 'X':
+      if (line.size() != 2) return kGrblInvalidStatement;
+      switch (c1) {
+        case '$':
+          if (state_ == GrblState::kRun || state_ == GrblState::kHold) return kGrblIdleError;
+          Emit(settings_.Report());
+          break;
+        case 'G':
+          Emit(FormatParserState(gc_, settings_.report_inches) + "\r\n");
+          break;
+        case 'C':
+          if (state_ == GrblState::kCheck) {
+            McReset();
+            Emit("[MSG:Disabled]\r\n");
+          } else {
+            if (state_ != GrblState::kIdle) return kGrblIdleError;
+            state_ = GrblState::kCheck;
+            Emit("[MSG:Enabled]\r\n");
+          }
+          break;
+        default:  // 'X'
+          if (state_ == GrblState::kAlarm) {
+            Emit("[MSG:Caution: Unlocked]\r\n");
+            state_ = GrblState::kIdle;
+          }
+          break;
+      }
+      return kGrblOk;
+    default:
+      break;
+  }
+  if (!(state_ == GrblState::kIdle || state_ == GrblState::kAlarm)) return kGrblIdleError;
+  switch (c1) {
+    case '#': {
+      if (line.size() != 2) return kGrblInvalidStatement;
+      std::string s;
+      for (int i = 0; i < 6; ++i) {
+        s += "[G" + std::to_string(54 + i) + ":" +
+             AxisValues(coords_.wcs[static_cast<std::size_t>(i)]) + "]\r\n";
+      }
+      s += "[G28:" + AxisValues(coords_.g28) + "]\r\n";
+      s += "[G30:" + AxisValues(coords_.g30) + "]\r\n";
+      s += "[G92:" + AxisValues(gc_.coord_offset) + "]\r\n";
+      s += "[TLO:" +
+           (settings_.report_inches ? FormatGrblFloat(gc_.tool_length_offset / kMmPerInch, 4)
+                                    : FormatGrblFloat(gc_.tool_length_offset, 3)) +
+           "]\r\n";
+      s += "[PRB:" + AxisValues(probe_position_) + ":" + (probe_succeeded_ ? "1" : "0") + "]\r\n";
+      Emit(s);
+      return kGrblOk;
+    }
+    case 'H':
+      if (!settings_.homing_enable) return kGrblSettingDisabled;
+      if (line.size() != 2) return kGrblInvalidStatement;  // HOMING_SINGLE_AXIS_COMMANDS is off
+      state_ = GrblState::kHome;
+      HomingCycle(lk);
+      if (!abort_ && !Aborting()) {
+        state_ = GrblState::kIdle;
+        ExecuteStartupLines(lk);
+      }
+      return kGrblOk;
+    case 'S':
+      if (line != "$SLP") return kGrblInvalidStatement;
+      rt_sleep_ = true;
+      return kGrblOk;
+    case 'I':
+      if (line.size() == 2) {
+        Emit("[VER:" + std::string(kVersionBuild) + ":" + build_info_ + "]\r\n");
+        Emit("[OPT:V," + std::to_string(options_.planner_blocks) + "," +
+             std::to_string(options_.rx_buffer_bytes) + "]\r\n");
+        return kGrblOk;
+      }
+      if (line[2] != '=') return kGrblInvalidStatement;
+      Synchronize(lk);  // FORCE_BUFFER_SYNC_DURING_EEPROM_WRITE
+      build_info_ = line.substr(3);
+      return kGrblOk;
+    case 'R': {
+      if (line.size() != 6 || line.compare(2, 3, "ST=") != 0) return kGrblInvalidStatement;
+      switch (line[5]) {
+        case '$':
+          settings_ = options_.settings;
+          break;
+        case '#':
+          coords_ = CoordinateData();
+          break;
+        case '*':
+          settings_ = options_.settings;
+          coords_ = CoordinateData();
+          startup_lines_ = {};
+          build_info_.clear();
+          break;
+        default:
+          return kGrblInvalidStatement;
+      }
+      exec_.SetLimits(settings_.Limits());
+      Emit("[MSG:Restoring defaults]\r\n");
+      McReset();
+      return kGrblOk;
+    }
+    case 'N':
+      if (line.size() == 2) {
+        for (std::size_t n = 0; n < startup_lines_.size(); ++n) {
+          Emit("$N" + std::to_string(n) + "=" + startup_lines_[n] + "\r\n");
+        }
+        return kGrblOk;
+      }
+      if (state_ != GrblState::kIdle) return kGrblIdleError;
+      [[fallthrough]];
+    default: {
+      const bool startup = c1 == 'N';
+      std::size_t pos = startup ? 2 : 1;
+      double parameter = 0.0;
+      if (!ReadGrblFloat(line, pos, parameter)) return kGrblBadNumberFormat;
+      if (pos >= line.size() || line[pos++] != '=') return kGrblInvalidStatement;
+      if (startup) {
+        const std::string block = line.substr(pos);
+        const int status = GcExecuteLine(lk, block);
+        if (status != kGrblOk) return status;
+        const int n = static_cast<int>(std::trunc(parameter));
+        if (n < 0 || n >= static_cast<int>(startup_lines_.size())) return kGrblInvalidStatement;
+        Synchronize(lk);
+        startup_lines_[static_cast<std::size_t>(n)] = block;
+        return kGrblOk;
+      }
+      double value = 0.0;
+      if (!ReadGrblFloat(line, pos, value)) return kGrblBadNumberFormat;
+      if (pos != line.size() || parameter > 255) return kGrblInvalidStatement;
+      const int status = settings_.Store(static_cast<int>(parameter), value);
+      if (status == kGrblOk) {
+        exec_.SetLimits(settings_.Limits());
+        if (static_cast<int>(parameter) == 13) wco_counter_ = 0;
+      }
+      return status;
+    }
+  }
+}
+
+void VirtualCnc::Impl::ExecuteStartupLines(Lock& lk) {
+  for (std::size_t n = 0; n < startup_lines_.size(); ++n) {
+    if (startup_lines_[n].empty()) continue;
+    const std::string block = startup_lines_[n];
+    const int status = GcExecuteLine(lk, block);
+    Emit(">" + block + ":" + StatusLine(status));
+    if (abort_ || Aborting()) return;
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// G-code execution (gc_execute_line step 4).
+
+int VirtualCnc::Impl::GcExecuteLine(Lock& lk, const std::string& line) {
+  GcodeBlock blk;
+  const int status = ParseGcodeLine(line, gc_, coords_, &blk);
+  if (status != kGrblOk) return status;
+
+  if (blk.jog) {  // jog_execute()
+    if (settings_.soft_limits && !TravelOk(blk.xyz)) return kGrblTravelExceeded;
+    MoveRate rate;
+    rate.rapid = false;
+    rate.feed_mm_per_min = blk.feed_rate;
+    McLine(lk, blk.xyz, rate);
+    if (abort_ || Aborting()) return kGrblOk;
+    if (state_ == GrblState::kIdle && exec_.BlockCount() > 0) {
+      state_ = GrblState::kJog;
+      exec_.StartCycle(MachineNow());
+    }
+    gc_.position = blk.xyz;
+    return kGrblOk;
+  }
+
+  gc_.line_number = blk.line_number;
+  gc_.modal.inverse_time = blk.modal.inverse_time;
+  gc_.feed_rate = blk.feed_rate;
+  if (gc_.spindle_speed != blk.spindle_speed) {
+    if (gc_.modal.spindle != 0 && state_ != GrblState::kCheck) Synchronize(lk);  // spindle_sync()
+    gc_.spindle_speed = blk.spindle_speed;
+  }
+  gc_.tool = blk.tool;
+  if (gc_.modal.spindle != blk.modal.spindle) {
+    if (state_ != GrblState::kCheck) Synchronize(lk);
+    gc_.modal.spindle = blk.modal.spindle;
+  }
+  if (gc_.modal.coolant != blk.modal.coolant) {
+    if (state_ != GrblState::kCheck) Synchronize(lk);  // coolant_sync()
+    gc_.modal.coolant = blk.modal.coolant;
+  }
+  if (blk.non_modal == kNonModalDwell) McDwell(lk, blk.dwell_s);
+  if (abort_ || Aborting()) return kGrblOk;
+  gc_.modal.plane = blk.modal.plane;
+  gc_.modal.inches = blk.modal.inches;
+  if (blk.axis_command == kAxisCommandToolLengthOffset) {
+    gc_.modal.tool_length_dynamic = blk.modal.tool_length_dynamic;
+    const double tlo = blk.modal.tool_length_dynamic ? blk.xyz[2] : 0.0;
+    if (gc_.tool_length_offset != tlo) {
+      gc_.tool_length_offset = tlo;
+      FlagWcoChange(lk);
+    }
+  }
+  if (gc_.modal.coord_select != blk.modal.coord_select) {
+    gc_.modal.coord_select = blk.modal.coord_select;
+    gc_.coord_system = blk.block_coord_system;
+    FlagWcoChange(lk);
+  }
+  gc_.modal.incremental = blk.modal.incremental;
+  MoveRate rapid;
+  rapid.rapid = true;
+  switch (blk.non_modal) {
+    case kNonModalSetCoordinateData:
+      Synchronize(lk);  // settings_write_coord_data(): FORCE_BUFFER_SYNC_DURING_EEPROM_WRITE
+      coords_.wcs[static_cast<std::size_t>(blk.coord_data_index)] = blk.ijk;
+      if (gc_.modal.coord_select == blk.coord_data_index) {
+        gc_.coord_system = blk.ijk;
+        FlagWcoChange(lk);
+      }
+      break;
+    case kNonModalGoHome0:
+    case kNonModalGoHome1:
+      if (blk.axis_command) McLine(lk, blk.xyz, rapid);
+      McLine(lk, blk.ijk, rapid);
+      gc_.position = blk.ijk;
+      break;
+    case kNonModalSetHome0:
+      Synchronize(lk);
+      coords_.g28 = gc_.position;
+      break;
+    case kNonModalSetHome1:
+      Synchronize(lk);
+      coords_.g30 = gc_.position;
+      break;
+    case kNonModalSetCoordinateOffset:
+      gc_.coord_offset = blk.xyz;
+      FlagWcoChange(lk);
+      break;
+    case kNonModalResetCoordinateOffset:
+      gc_.coord_offset.setZero();
+      FlagWcoChange(lk);
+      break;
+    default:
+      break;
+  }
+  if (abort_ || Aborting()) return kGrblOk;
+
+  gc_.modal.motion = blk.modal.motion;
+  if (gc_.modal.motion != kMotionNone && blk.axis_command == kAxisCommandMotionMode) {
+    MoveRate rate;
+    rate.rapid = gc_.modal.motion == kMotionSeek;
+    rate.feed_mm_per_min = gc_.feed_rate;
+    rate.inverse_time = gc_.modal.inverse_time;
+    int update = 0;  // GC_UPDATE_POS_TARGET
+    if (gc_.modal.motion == kMotionLinear || gc_.modal.motion == kMotionSeek) {
+      McLine(lk, blk.xyz, rate);
+    } else if (gc_.modal.motion == kMotionCwArc || gc_.modal.motion == kMotionCcwArc) {
+      McArc(lk, blk, rate);
+    } else {
+      update = McProbeCycle(lk, blk, rate);
+    }
+    if (update == 0) {
+      gc_.position = blk.xyz;
+    } else if (update == 1) {
+      gc_.position = Belief();
+    }
+  }
+  if (abort_ || Aborting()) return kGrblOk;
+
+  gc_.modal.program_flow = blk.modal.program_flow;
+  if (gc_.modal.program_flow) {
+    Synchronize(lk);
+    if (abort_ || Aborting()) return kGrblOk;
+    if (gc_.modal.program_flow == 3) {  // M0
+      if (state_ != GrblState::kCheck) {
+        rt_feed_hold_ = true;
+        ExecuteRealtime(lk);
+      }
+    } else {  // M2, M30
+      gc_.modal.motion = kMotionLinear;
+      gc_.modal.plane = 0;
+      gc_.modal.incremental = false;
+      gc_.modal.inverse_time = false;
+      gc_.modal.coord_select = 0;
+      gc_.modal.spindle = 0;
+      gc_.modal.coolant = 0;
+      if (state_ != GrblState::kCheck) {
+        gc_.coord_system = coords_.wcs[0];
+        FlagWcoChange(lk);
+      }
+      Emit("[MSG:Pgm End]\r\n");
+    }
+    gc_.modal.program_flow = 0;
+  }
+  return kGrblOk;
+}
+
+bool VirtualCnc::Impl::TravelOk(const Eigen::Vector3d& target) const {
+  for (int i = 0; i < 3; ++i) {
+    if (target[i] > 0.0 || target[i] < -settings_.max_travel_mm[i]) return false;
+  }
+  return true;
+}
+
+void VirtualCnc::Impl::LimitsSoftCheck(Lock& lk, const Eigen::Vector3d& target) {
+  if (TravelOk(target)) return;
+  soft_limit_ = true;
+  if (state_ == GrblState::kRun) {  // controlled stop first: position is kept
+    rt_feed_hold_ = true;
+    while (true) {
+      ExecuteRealtime(lk);
+      if (abort_) return;
+      if (state_ == GrblState::kIdle) break;
+      Wait(lk);
+    }
+  }
+  McReset();
+  rt_alarm_ = kGrblAlarmSoftLimit;
+  ExecuteRealtime(lk);
+}
+
+void VirtualCnc::Impl::McLine(Lock& lk, const Eigen::Vector3d& target, const MoveRate& rate) {
+  if (settings_.soft_limits && state_ != GrblState::kJog) {
+    LimitsSoftCheck(lk, target);
+    if (abort_ || Aborting()) return;
+  }
+  if (state_ == GrblState::kCheck) return;
+  while (true) {
+    ExecuteRealtime(lk);
+    if (abort_) return;
+    if (!exec_.PlannerFull()) break;
+    AutoCycleStart();
+    Wait(lk);
+  }
+  const Eigen::Vector3d true_target = Quantize(target) + offset_;
+  if (exec_.AddLine(true_target, rate, MachineNow(), armed_alarm_)) {
+    armed_alarm_.reset();
+    ++stats_.blocks_planned;
+  }
+}
+
+void VirtualCnc::Impl::McArc(Lock& lk, const GcodeBlock& blk, const MoveRate& rate_in) {
+  const std::vector<Eigen::Vector3d> points =
+      ArcSegmentTargets(gc_.position, blk.xyz, blk.ijk, blk.radius, blk.axis_0, blk.axis_1,
+                        blk.axis_linear, blk.arc_clockwise, settings_.arc_tolerance_mm);
+  MoveRate rate = rate_in;
+  if (rate.inverse_time && points.size() > 1) {
+    rate.feed_mm_per_min *= static_cast<double>(points.size());
+    rate.inverse_time = false;
+  }
+  for (const Eigen::Vector3d& p : points) {
+    McLine(lk, p, rate);
+    if (abort_ || Aborting()) return;
+  }
+}
+
+void VirtualCnc::Impl::McDwell(Lock& lk, double seconds) {
+  if (state_ == GrblState::kCheck) return;
+  Synchronize(lk);
+  if (abort_) return;
+  // delay_sec(seconds, DELAY_MODE_DWELL): ceil(seconds / 50 ms) steps of 50 ms, real-time
+  // commands served between steps (a feed hold suspends the dwell).
+  const long steps = static_cast<long>(std::ceil(seconds / kDwellTimeStep - 1e-9));
+  for (long i = 0; i < steps; ++i) {
+    if (Aborting()) return;
+    ExecuteRealtime(lk);
+    if (abort_) return;
+    const double end = MachineNow() + kDwellTimeStep;
+    if (clock_.instant()) {
+      clock_.JumpTo(Clock::now(), end);
+      continue;
+    }
+    while (MachineNow() < end) {
+      Wait(lk, end);
+      if (Aborting()) return;
+    }
+  }
+}
+
+void VirtualCnc::Impl::MachineDelay(Lock& lk, double seconds) {
+  if (seconds <= 0.0) return;
+  const double end = MachineNow() + seconds;
+  if (clock_.instant()) {
+    clock_.JumpTo(Clock::now(), end);
+    return;
+  }
+  while (MachineNow() < end && !Aborting()) {
+    UpdateMotion();
+    Wait(lk, end);
+  }
+}
+
+int VirtualCnc::Impl::McProbeCycle(Lock& lk, const GcodeBlock& blk, const MoveRate& rate) {
+  if (state_ == GrblState::kCheck) return 0;
+  Synchronize(lk);
+  if (abort_) return 2;
+  probe_succeeded_ = false;
+  const bool away =
+      blk.modal.motion == kMotionProbeAway || blk.modal.motion == kMotionProbeAwayNoError;
+  const bool no_error =
+      blk.modal.motion == kMotionProbeTowardNoError || blk.modal.motion == kMotionProbeAwayNoError;
+  // No probe is wired to this rig: the input never triggers. Probing "away" expects contact at
+  // the start, so it fails at once.
+  if (away) {
+    rt_alarm_ = kGrblAlarmProbeFailInitial;
+    ExecuteRealtime(lk);
+    return 2;
+  }
+  McLine(lk, blk.xyz, rate);
+  if (abort_ || Aborting()) return 2;
+  rt_cycle_start_ = true;
+  while (true) {
+    ExecuteRealtime(lk);
+    if (abort_) return 2;
+    if (state_ == GrblState::kIdle) break;
+    Wait(lk);
+  }
+  if (no_error) {
+    probe_position_ = Belief();
+  } else {
+    rt_alarm_ = kGrblAlarmProbeFailContact;
+  }
+  ExecuteRealtime(lk);
+  exec_.Stop(MachineNow());
+  Emit("[PRB:" + AxisValues(probe_position_) + ":0]\r\n");
+  return 0;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Homing (mc_homing_cycle / limits_go_home).
+
+bool VirtualCnc::Impl::HomingMove(Lock& lk, const Eigen::Vector3d& target, double rate,
+                                  bool abrupt) {
+  exec_.AddSystemLine(target, rate, abrupt, MachineNow());
+  exec_.StartCycle(MachineNow());
+  while (true) {
+    UpdateMotion();  // no status reports during homing, only a reset gets through
+    if (Aborting()) return false;
+    if (!exec_.Busy()) return true;
+    Wait(lk);
+  }
+}
+
+bool VirtualCnc::Impl::HomeAxes(Lock& lk, const std::vector<int>& axes) {
+  const double n = static_cast<double>(axes.size());
+  const double seek = settings_.homing_seek_mm_per_min * std::sqrt(n);
+  const double feed = settings_.homing_feed_mm_per_min * std::sqrt(n);
+  const double pulloff = settings_.homing_pulloff_mm;
+  const double debounce = settings_.homing_debounce_ms / 1000.0;
+  Eigen::Vector3d sw = Eigen::Vector3d::Zero();   // switch positions (true frame)
+  Eigen::Vector3d dir = Eigen::Vector3d::Zero();  // direction toward the switch
+  for (int i : axes) {
+    const bool negative = (settings_.homing_dir_mask >> i) & 1;
+    dir[i] = negative ? -1.0 : 1.0;
+    sw[i] = negative ? -settings_.max_travel_mm[i] : 0.0;
+  }
+  auto fail = [&](int alarm) {
+    rt_alarm_ = alarm;
+    McReset();
+    ExecuteRealtime(lk);
+    return false;
+  };
+  // Search: toward the switch, at most 1.5 * max travel.
+  Eigen::Vector3d here = exec_.PositionAt(MachineNow());
+  Eigen::Vector3d target = here;
+  bool found = true;
+  for (int i : axes) {
+    const double distance = std::max(0.0, (sw[i] - here[i]) * dir[i]);
+    const double limit = kHomingSearchScalar * settings_.max_travel_mm[i];
+    if (distance > limit) {
+      found = false;
+      target[i] = here[i] + dir[i] * limit;
+    } else {
+      target[i] = sw[i];
+    }
+  }
+  if (!HomingMove(lk, target, seek, true)) return fail(kGrblAlarmHomingFailReset);
+  if (!found) return fail(kGrblAlarmHomingFailApproach);
+  MachineDelay(lk, debounce);
+  // Pull-off, locate slowly, pull-off again.
+  for (int phase = 0; phase < 3; ++phase) {
+    const bool approach = phase == 1;
+    here = exec_.PositionAt(MachineNow());
+    target = here;
+    for (int i : axes) target[i] = approach ? sw[i] : sw[i] - dir[i] * pulloff;
+    if (!approach && pulloff <= 0.0) return fail(kGrblAlarmHomingFailPulloff);
+    if (!HomingMove(lk, target, approach ? feed : seek, approach)) {
+      return fail(kGrblAlarmHomingFailReset);
+    }
+    MachineDelay(lk, debounce);
+    if (Aborting()) return fail(kGrblAlarmHomingFailReset);
+  }
+  // Machine position after homing: -pulloff toward +, -max_travel + pulloff toward -.
+  const Eigen::Vector3d truth = exec_.PositionAt(MachineNow());
+  for (int i : axes) {
+    const double belief = dir[i] > 0 ? -pulloff : -settings_.max_travel_mm[i] + pulloff;
+    offset_[i] = truth[i] - belief;
+  }
+  return true;
+}
+
+void VirtualCnc::Impl::HomingCycle(Lock& lk) {
+  exec_.Stop(MachineNow());
+  if (!HomeAxes(lk, {2})) return;     // HOMING_CYCLE_0: Z
+  if (!HomeAxes(lk, {0, 1})) return;  // HOMING_CYCLE_1: X and Y
+  ExecuteRealtime(lk);                // answers a status request made during homing (state Home)
+  if (abort_) return;
+  gc_.position = Belief();
+}
+
+// ---------------------------------------------------------------------------------------------
+// Public wrapper.
+
+VirtualCnc::VirtualCnc(const VirtualCncOptions& options) {
+  options.Check();
+  impl_ = std::make_unique<Impl>(options);
+}
+VirtualCnc::~VirtualCnc() = default;
+void VirtualCnc::Stop() {
+  impl_->Stop();
+}
+std::string VirtualCnc::PtyPath() const {
+  return impl_->PtyPath();
+}
+const VirtualCncOptions& VirtualCnc::options() const {
+  return impl_->options();
+}
+Eigen::Vector3d VirtualCnc::TruePosition(Clock::time_point t) const {
+  return impl_->TruePosition(t);
+}
+double VirtualCnc::TrueSpeed(Clock::time_point t) const {
+  return impl_->TrueSpeed(t);
+}
+std::vector<MotionPiece> VirtualCnc::TrueTrajectory(Clock::time_point from,
+                                                    Clock::time_point to) const {
+  return impl_->TrueTrajectory(from, to);
+}
+double VirtualCnc::MachineTime(Clock::time_point t) const {
+  return impl_->MachineTime(t);
+}
+Eigen::Vector3d VirtualCnc::ReportedPosition() const {
+  return impl_->ReportedPosition();
+}
+GrblState VirtualCnc::State() const {
+  return impl_->State();
+}
+GrblSettings VirtualCnc::Settings() const {
+  return impl_->Settings();
+}
+int VirtualCnc::PlannerBlocksQueued() const {
+  return impl_->PlannerBlocksQueued();
+}
+int VirtualCnc::RxBufferUsed() const {
+  return impl_->RxBufferUsed();
+}
+VirtualCncStats VirtualCnc::Stats() const {
+  return impl_->Stats();
+}
+void VirtualCnc::DropNextBytes(std::size_t n, FaultDirection direction) {
+  impl_->DropNextBytes(n, direction);
+}
+void VirtualCnc::SetDropProbability(double p, FaultDirection direction) {
+  impl_->SetDropProbability(p, direction);
+}
+void VirtualCnc::GarbleNextBytes(std::size_t n, FaultDirection direction) {
+  impl_->GarbleNextBytes(n, direction);
+}
+void VirtualCnc::StallReplies(std::chrono::milliseconds duration) {
+  impl_->StallReplies(duration);
+}
+void VirtualCnc::Unplug(const UnplugOptions& options) {
+  impl_->Unplug(options);
+}
+void VirtualCnc::Replug() {
+  impl_->Replug();
+}
+bool VirtualCnc::Plugged() const {
+  return impl_->Plugged();
+}
+void VirtualCnc::RaiseAlarmDuringNextMove(int alarm_code, double fraction) {
+  impl_->RaiseAlarmDuringNextMove(alarm_code, fraction);
+}
+void VirtualCnc::LosePositionOnReset(bool lose) {
+  impl_->LosePositionOnReset(lose);
+}
+
+int RunVirtualCncForeground(const VirtualCncOptions& options) {
+  // Block the signals before the threads start so that they inherit the mask and only sigwait()
+  // below receives them.
+  sigset_t signals, previous;
+  sigemptyset(&signals);
+  sigaddset(&signals, SIGINT);
+  sigaddset(&signals, SIGTERM);
+  pthread_sigmask(SIG_BLOCK, &signals, &previous);
+  try {
+    VirtualCnc cnc(options);
+    std::cout << cnc.PtyPath() << "\n";
+    if (!options.symlink_path.empty()) std::cout << options.symlink_path << "\n";
+    std::cout.flush();
+    std::cerr << "virtual GRBL 1.1h on " << cnc.PtyPath() << " (time scale " << options.time_scale
+              << ", RX " << options.rx_buffer_bytes << " bytes, " << options.planner_blocks
+              << " planner blocks); Ctrl-C to stop\n";
+    int sig = 0;
+    sigwait(&signals, &sig);
+    cnc.Stop();
+  } catch (...) {
+    pthread_sigmask(SIG_SETMASK, &previous, nullptr);
+    throw;
+  }
+  pthread_sigmask(SIG_SETMASK, &previous, nullptr);
+  return 0;
+}
+
+}  // namespace gs360

@@ -1,0 +1,189 @@
+#pragma once
+// The virtual CNC: a GRBL 1.1h controller served on a pseudo-terminal, for tests, the demo and
+// benchmarks (production code never includes sim/). A host opens PtyPath() exactly as it would
+// open /dev/ttyUSB0 and talks the GRBL 1.1 line protocol; the machine moves along GRBL's planned
+// trapezoidal profiles in (scaled) real time, and TruePosition() tells where the tool really is.
+//
+// Faithful where a host can tell the difference (gnea/grbl 1.1h protocol.c, serial.c, gcode.c,
+// planner.c, limits.c, report.c):
+// - An "ISR" thread reads the pty master as bytes arrive. Real-time bytes (`?` `!` `~` 0x18;
+//   0x85 jog cancel; other bytes >= 0x80 are discarded) never enter the RX buffer; the others go
+//   into a ring of `rx_buffer_bytes` (128) and are DROPPED when it is full.
+// - The firmware thread consumes characters only while it is not blocked: a motion line waits
+//   for room in the 15-block planner, G4 waits for the planner to empty and then dwells (in
+//   50 ms steps, as delay_sec() does), a feed hold suspends it, `$H` blocks it. `ok` is sent
+//   when a line is parsed and queued; `error:N` with GRBL's codes; every line terminator counts,
+//   so "\r\n" yields a second `ok` (for the empty line), as on the firmware.
+// - Welcome `\r\nGrbl 1.1h ['$' for help]` after power-up and every reset, then
+//   `[MSG:'$H'|'$X' to unlock]` while in Alarm (homing enabled: Alarm at power-up).
+// - Reset (0x18) while moving (Run, Jog, Home, Hold:1): steppers stop dead, `ALARM:3`
+//   (`ALARM:6` while homing) is reported *before* the welcome; a reset in Hold:0 keeps position.
+// - Soft limits ($20): the target is checked before queuing; a violation stops motion with a
+//   controlled hold, prints `ALARM:2` and `[MSG:Reset to continue]`, then ignores everything but
+//   a reset (even `?`, as GRBL 1.1 does); after the reset comes the `ok` of the offending line,
+//   the welcome, and Alarm state where G-code gets `error:9` until `$X` or `$H`. Hard limits
+//   (injected ALARM:1) behave the same way, with steppers stopped dead.
+// - Homing ($H): Z then X+Y, seek / pull-off / locate / pull-off with debounce delays, timed
+//   from $24-$27; afterwards MPos is -$27 on each axis homed toward + ($23 bit clear; toward -:
+//   -$13x + $27), exactly as GRBL without HOMING_FORCE_SET_ORIGIN. Status requests during
+//   homing are answered once homing ends (state Home), as on the firmware.
+// - `?` gives `<State|MPos:x,y,z|FS:f,s>` (WPos per $10, `|Bf:` with $10 bit 1), plus `|WCO:`
+//   and `|Ov:` at GRBL's refresh cadence when `report_wco_and_overrides`.
+// - Positions are reported in whole steps ($100-$102); work offsets (G10 L2/L20, G54-G59, G92)
+//   force a buffer sync, as FORCE_BUFFER_SYNC_DURING_WCO_CHANGE does.
+//
+// Ground truth vs. belief: the machine has a true position (TruePosition, machine frame, mm) and
+// the controller's belief (what MPos reports). They agree unless position is lost: a power loss
+// (Unplug with power_loss, reset_on_open) restarts the controller at MPos 0,0,0 wherever the
+// machine stands; LosePositionOnReset(true) shifts the belief by a random offset whenever the
+// steppers are stopped dead (reset in motion, hard limit, injected alarm). Homing restores
+// agreement. The true frame is the machine frame of a correct homing: the switches sit at
+// 0 (toward +) or -$13x (toward -).
+//
+// Thread-safe: every public method may be called from any thread.
+
+#include <chrono>
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "sim/grbl_planner.h"
+#include "sim/grbl_settings.h"
+
+namespace gs360 {
+
+enum class GrblState { kIdle, kRun, kHold, kJog, kAlarm, kDoor, kCheck, kHome, kSleep };
+// "Idle", "Run", "Hold", ... (without sub-state).
+const char* GrblStateName(GrblState state);
+
+struct VirtualCncOptions {
+  // Machine seconds per wall second: 1 = real time, 20 = twenty times faster. 0 = instant:
+  // motion and dwells complete at once, ordering and replies unchanged.
+  double time_scale = 1.0;
+  int rx_buffer_bytes = 128;  // reported in $I [OPT:V,15,128]
+  // Serial line speed: bytes enter and leave the controller's UART at baud/10 bytes per second
+  // (a 128-byte burst takes 11 ms at 115200), so the firmware consumes lines while they
+  // arrive, as on a real board. 0 = no pacing (a whole chunk lands at once).
+  int baud_rate = 115200;
+  int planner_blocks = 15;
+  GrblSettings settings;  // the EEPROM at power-up; also what $RST=$ restores
+  // True machine position at power-up (the controller believes 0,0,0).
+  Eigen::Vector3d initial_true_position = Eigen::Vector3d::Zero();
+  // If set, a symlink kept pointing at the current pty slave (removed while unplugged).
+  std::string symlink_path;
+  // Arduino-style auto-reset: the controller power-cycles when a host opens the port, and
+  // output sent while no host has the port open is lost.
+  bool reset_on_open = false;
+  // Wall time from power-up to the welcome line (a bootloader's delay).
+  std::chrono::milliseconds boot_delay{0};
+  // `|WCO:` / `|Ov:` fields in status reports at GRBL's cadence (default build).
+  bool report_wco_and_overrides = true;
+  // Largest per-axis belief error (mm) when position is lost (LosePositionOnReset).
+  double lost_position_max_mm = 0.5;
+  std::size_t history_pieces = 1u << 15;  // executed motion pieces kept for TruePosition()
+  std::uint64_t seed = 1;                 // fault-injection randomness
+
+  // Throws std::invalid_argument naming the field and its value.
+  void Check() const;
+};
+
+enum class FaultDirection { kHostToCnc, kCncToHost, kBoth };
+
+struct UnplugOptions {
+  // The controller loses power with the cable (USB-powered Arduino): motion stops dead, and
+  // at replug it boots again (welcome, Alarm with homing enabled, MPos 0,0,0).
+  bool power_loss = true;
+  // Re-create the pty (under a new path) after this wall time; otherwise call Replug().
+  std::optional<std::chrono::milliseconds> replug_after;
+};
+
+struct VirtualCncStats {
+  std::uint64_t bytes_from_host = 0;      // read from the pty (before injected faults)
+  std::uint64_t rx_overflow_dropped = 0;  // lost because the RX buffer was full
+  std::uint64_t injected_drops = 0;       // both directions
+  std::uint64_t injected_garbles = 0;     // both directions
+  std::uint64_t lines = 0;                // lines executed (ok or error)
+  std::uint64_t errors = 0;
+  std::uint64_t alarms = 0;
+  std::uint64_t resets = 0;  // soft resets (0x18 and internal)
+  std::uint64_t boots = 0;   // power-ups
+  std::uint64_t blocks_planned = 0;
+};
+
+class VirtualCnc {
+ public:
+  using Clock = std::chrono::steady_clock;
+
+  // Checks the options, opens the pty (and symlink) and starts the threads; the welcome line is
+  // sent once `boot_delay` has passed. Throws std::invalid_argument for bad options and
+  // std::runtime_error when the pty or symlink cannot be created.
+  explicit VirtualCnc(const VirtualCncOptions& options = VirtualCncOptions());
+  ~VirtualCnc();
+  VirtualCnc(const VirtualCnc&) = delete;
+  VirtualCnc& operator=(const VirtualCnc&) = delete;
+
+  // Stops the threads, closes the pty, removes the symlink. Idempotent.
+  void Stop();
+
+  // The pty slave path a host opens ("" while unplugged).
+  std::string PtyPath() const;
+  const VirtualCncOptions& options() const;
+
+  // --- Ground truth ---
+  // Tool position (true machine frame, mm) at a steady_clock instant: exact interpolation of the
+  // executed profile for the past (as far back as the kept history), the current plan's
+  // prediction for the future.
+  Eigen::Vector3d TruePosition(Clock::time_point t) const;
+  Eigen::Vector3d TruePositionNow() const { return TruePosition(Clock::now()); }
+  double TrueSpeed(Clock::time_point t) const;  // mm/s
+  // Executed motion pieces overlapping [from, to] (machine-time fields; see MachineTime()).
+  std::vector<MotionPiece> TrueTrajectory(Clock::time_point from, Clock::time_point to) const;
+  // Machine seconds since start at a wall instant (scaled; jumps in instant mode).
+  double MachineTime(Clock::time_point t) const;
+  // What MPos would report now (the controller's belief, in whole steps).
+  Eigen::Vector3d ReportedPosition() const;
+  GrblState State() const;
+  GrblSettings Settings() const;
+  int PlannerBlocksQueued() const;
+  int RxBufferUsed() const;
+  VirtualCncStats Stats() const;
+
+  // --- Fault injection ---
+  // Lose the next n bytes on the wire in `direction`.
+  void DropNextBytes(std::size_t n, FaultDirection direction = FaultDirection::kHostToCnc);
+  // Lose each byte with probability p (seeded), until set back to 0.
+  void SetDropProbability(double p, FaultDirection direction = FaultDirection::kHostToCnc);
+  // Flip one random bit (of the low 7) in each of the next n bytes.
+  void GarbleNextBytes(std::size_t n, FaultDirection direction = FaultDirection::kHostToCnc);
+  // Hold every byte to the host for `duration` (wall time); nothing is lost.
+  void StallReplies(std::chrono::milliseconds duration);
+  // USB unplug: closes the pty (a host sees EOF / EIO), drops pending output.
+  void Unplug(const UnplugOptions& options = UnplugOptions());
+  // The device comes back under a NEW pty path (PtyPath() and the symlink follow). Throws
+  // std::runtime_error if the pty cannot be created. No effect when plugged.
+  void Replug();
+  bool Plugged() const;
+  // The next queued motion block stops dead after covering `fraction` of its length and the
+  // controller raises ALARM:code. Codes 1 and 2 are critical events (reset required); other
+  // codes are followed by an automatic reset (welcome), as an abort is.
+  void RaiseAlarmDuringNextMove(int alarm_code, double fraction);
+  // While true, every dead stop (reset in motion, hard limit, injected alarm) also shifts the
+  // controller's belief by up to `lost_position_max_mm` per axis.
+  void LosePositionOnReset(bool lose);
+
+ private:
+  class Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+// `gs360 sim-cnc`: starts a VirtualCnc, prints the pty path on the first line of stdout (and
+// the symlink on the second when configured), serves until SIGINT or SIGTERM, then stops.
+// Returns 0. Throws what the VirtualCnc constructor throws.
+int RunVirtualCncForeground(const VirtualCncOptions& options);
+
+}  // namespace gs360
