@@ -22,8 +22,8 @@ gs360::Frame MakeFrame(std::uint64_t seq) {
   f.image = cv::Mat(48, 64, CV_8UC3);
   for (int y = 0; y < f.image.rows; ++y)
     for (int x = 0; x < f.image.cols; ++x)
-      f.image.at<cv::Vec3b>(y, x) = cv::Vec3b(static_cast<uchar>(x + seq), static_cast<uchar>(y),
-                                              static_cast<uchar>(seq));
+      f.image.at<cv::Vec3b>(y, x) =
+          cv::Vec3b(static_cast<uchar>(x + seq), static_cast<uchar>(y), static_cast<uchar>(seq));
   f.sequence = seq;
   f.timestamp = std::chrono::steady_clock::now();
   f.exposure = std::chrono::microseconds(1234);
@@ -59,7 +59,8 @@ TEST_CASE("socket frame source receives the server's frames intact", "[capture][
   CHECK(server.FramesServed() == 5);
 }
 
-TEST_CASE("socket frame source: a timeout keeps requests and replies in step", "[capture][socket]") {
+TEST_CASE("socket frame source: a timeout keeps requests and replies in step",
+          "[capture][socket]") {
   const auto path = SocketPath("timeout");
   std::atomic<std::uint64_t> seq{0};
   gs360::FrameServer server(path, [&] {

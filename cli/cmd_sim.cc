@@ -1,0 +1,76 @@
+// `gs360 sim-cnc` and `gs360 sim-rig`: the virtual rig as processes any sender can talk to.
+
+#include <csignal>
+#include <cstdio>
+#include <thread>
+
+#include "cli/commands.h"
+#include "cli/sim_bridge.h"
+#include "daemon/json_reader.h"
+#include "daemon/rig_config.h"
+#include "sim/virtual_cnc.h"
+#include "sim/virtual_rig.h"
+
+namespace gs360::cli {
+namespace {
+
+volatile std::sig_atomic_t g_stop = 0;
+extern "C" void OnSignal(int) {
+  g_stop = 1;
+}
+
+struct SimOptions {
+  double time_scale = 1.0;
+  int rx_buffer = 128;
+  std::string symlink;
+  std::string shape = "cylinder";
+  std::string socket;
+  std::uint64_t seed = 1;
+};
+
+}  // namespace
+
+void RegisterSimCommands(CLI::App& app, CommandContext& ctx) {
+  static SimOptions o;
+  auto* cnc = app.add_subcommand(
+      "sim-cnc", "Serve a virtual GRBL 1.1 CNC on a pseudo-terminal (prints its path)");
+  cnc->add_option("--time-scale", o.time_scale, "Machine seconds per wall second (0 = instant)")
+      ->capture_default_str();
+  cnc->add_option("--rx-buffer", o.rx_buffer, "Receive buffer bytes reported by $I")
+      ->capture_default_str();
+  cnc->add_option("--symlink", o.symlink, "Keep a symlink to the pty here");
+  cnc->callback([&ctx] {
+    VirtualCncOptions options;
+    options.time_scale = o.time_scale;
+    options.rx_buffer_bytes = o.rx_buffer;
+    options.symlink_path = o.symlink;
+    ctx.exit_code = RunVirtualCncForeground(options);
+  });
+
+  auto* rig = app.add_subcommand(
+      "sim-rig",
+      "Serve the whole virtual rig: the CNC on a pty and the tactile camera on a socket");
+  rig->add_option("--time-scale", o.time_scale, "Machine seconds per wall second (0 = instant)")
+      ->capture_default_str();
+  rig->add_option("--shape", o.shape, "cylinder, cone or spline")->capture_default_str();
+  rig->add_option("--socket", o.socket, "Frame socket path (default: in the temp directory)");
+  rig->add_option("--seed", o.seed, "Seed of the hidden true camera and the noise")
+      ->capture_default_str();
+  rig->callback([] {
+    RigConfig config;
+    config.shape.shape = ParseSensorShape(o.shape);
+    VirtualRigOptions options;
+    options.rig = SimRigOptionsFor(config, o.seed);
+    options.camera.sensor.seed = o.seed;
+    options.cnc.time_scale = o.time_scale;
+    options.frame_socket = o.socket;
+    VirtualRig virtual_rig(options);
+    std::printf("%s\n%s\n", virtual_rig.PtyPath().c_str(), virtual_rig.FrameUri().c_str());
+    std::fflush(stdout);
+    std::signal(SIGINT, OnSignal);
+    std::signal(SIGTERM, OnSignal);
+    while (!g_stop) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  });
+}
+
+}  // namespace gs360::cli

@@ -1,0 +1,50 @@
+#include "cli/sim_bridge.h"
+
+namespace gs360::cli {
+
+SimRigOptions SimRigOptionsFor(const RigConfig& rig, std::uint64_t seed) {
+  SimRigOptions sim;
+  sim.shape = rig.shape;
+  sim.mesh_path = rig.mesh_path;
+  sim.fins = rig.fins;
+  sim.nominal_intrinsics = rig.camera;
+  sim.camera_z = rig.camera_z;
+  sim.machine_from_sensor = rig.machine_from_sensor();
+  sim.tool_offset = rig.tool_offset;
+  sim.ball_radius = rig.ball_radius;
+  sim.seed = seed;
+  return sim;
+}
+
+}  // namespace gs360::cli
+
+namespace gs360::cli {
+
+CaptureTruth CheckCapturesAgainstTruth(const VirtualCnc& cnc, const RunDatabase& db,
+                                       std::int64_t run_id, double tolerance_mm) {
+  using Clock = std::chrono::steady_clock;
+  const double unix_now =
+      std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+  const Clock::time_point steady_now = Clock::now();
+  auto to_steady = [&](double unix_s) {
+    return steady_now + std::chrono::duration_cast<Clock::duration>(
+                            std::chrono::duration<double>(unix_s - unix_now));
+  };
+  CaptureTruth truth;
+  for (const CapturedProbe& c : db.ListCapturedProbes(run_id)) {
+    ++truth.frames;
+    const Eigen::Vector3d at_frame = cnc.TruePosition(to_steady(c.frame_time));
+    const Eigen::Vector3d at_sync = cnc.TruePosition(to_steady(*c.probe.sync_time));
+    const double err = std::max((at_frame - c.probe.plan.press_machine).norm(),
+                                (at_sync - c.probe.plan.press_machine).norm());
+    truth.max_error_mm = std::max(truth.max_error_mm, err);
+    if (err > tolerance_mm) ++truth.off_target;
+    if (c.probe.machine_position) {
+      truth.max_reported_error_mm =
+          std::max(truth.max_reported_error_mm, (*c.probe.machine_position - at_frame).norm());
+    }
+  }
+  return truth;
+}
+
+}  // namespace gs360::cli

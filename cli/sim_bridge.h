@@ -1,0 +1,31 @@
+#pragma once
+// Builds the virtual rig that matches a user's rig configuration: the simulator takes the
+// configured (nominal) sensor, fins, lens, mount and tool offset, then perturbs the camera to
+// make its own hidden truth. Used by `demo`, `sim-rig` and the end-to-end tests only.
+
+#include "daemon/rig_config.h"
+#include "sim/virtual_rig.h"
+
+namespace gs360::cli {
+
+SimRigOptions SimRigOptionsFor(const RigConfig& rig, std::uint64_t seed = 1);
+
+}  // namespace gs360::cli
+
+#include "storage/run_database.h"
+
+namespace gs360::cli {
+
+// Ground-truth check of an acquisition on the virtual rig: for every captured probe, where the
+// virtual CNC truly was at its sync time and at its frame time, against the planned press
+// position. Times are converted from the stored Unix seconds with this process's clock offset.
+struct CaptureTruth {
+  int frames = 0;
+  int off_target = 0;         // frames with the tool further than tolerance from the press point
+  double max_error_mm = 0.0;  // largest |true - planned press| at sync or frame time
+  double max_reported_error_mm = 0.0;  // largest |reported MPos - true position| at frame time
+};
+CaptureTruth CheckCapturesAgainstTruth(const VirtualCnc& cnc, const RunDatabase& db,
+                                       std::int64_t run_id, double tolerance_mm = 0.005);
+
+}  // namespace gs360::cli

@@ -1,0 +1,142 @@
+#include "daemon/json_reader.h"
+
+#include <cmath>
+#include <fstream>
+#include <limits>
+#include <sstream>
+
+namespace gs360 {
+
+JsonReader::JsonReader(const nlohmann::json& json, std::string where, std::string path)
+    : json_(json), where_(std::move(where)), path_(std::move(path)) {
+  if (!json_.is_object()) {
+    throw ConfigError(where_ + ": " + (path_.empty() ? std::string("the configuration") : path_) +
+                      ": expected an object, got " + json_.type_name());
+  }
+}
+
+std::string JsonReader::FieldPath(const std::string& key) const {
+  return path_.empty() ? key : path_ + "." + key;
+}
+
+void JsonReader::Fail(const std::string& key, const std::string& what) const {
+  throw ConfigError(where_ + ": " + FieldPath(key) + ": " + what);
+}
+
+const nlohmann::json* JsonReader::Find(const char* key) {
+  known_.insert(key);
+  const auto it = json_.find(key);
+  return it == json_.end() ? nullptr : &*it;
+}
+
+const nlohmann::json* JsonReader::Raw(const char* key) {
+  return Find(key);
+}
+
+void JsonReader::Get(const char* key, double& out) {
+  const auto* v = Find(key);
+  if (!v) return;
+  if (!v->is_number()) Fail(key, std::string("expected a number, got ") + v->dump());
+  const double d = v->get<double>();
+  if (!std::isfinite(d)) Fail(key, "expected a finite number");
+  out = d;
+}
+
+void JsonReader::Get(const char* key, int& out) {
+  const auto* v = Find(key);
+  if (!v) return;
+  if (!v->is_number_integer()) Fail(key, std::string("expected an integer, got ") + v->dump());
+  const auto i = v->get<long long>();
+  if (i < std::numeric_limits<int>::min() || i > std::numeric_limits<int>::max()) {
+    Fail(key, "integer out of range: " + v->dump());
+  }
+  out = static_cast<int>(i);
+}
+
+void JsonReader::Get(const char* key, std::uint64_t& out) {
+  const auto* v = Find(key);
+  if (!v) return;
+  if (!v->is_number_integer() || v->get<long long>() < 0) {
+    Fail(key, std::string("expected a non-negative integer, got ") + v->dump());
+  }
+  out = v->get<std::uint64_t>();
+}
+
+void JsonReader::Get(const char* key, bool& out) {
+  const auto* v = Find(key);
+  if (!v) return;
+  if (!v->is_boolean()) Fail(key, std::string("expected true or false, got ") + v->dump());
+  out = v->get<bool>();
+}
+
+void JsonReader::Get(const char* key, std::string& out) {
+  const auto* v = Find(key);
+  if (!v) return;
+  if (!v->is_string()) Fail(key, std::string("expected a string, got ") + v->dump());
+  out = v->get<std::string>();
+}
+
+void JsonReader::Get(const char* key, Eigen::Vector3d& out) {
+  const auto* v = Find(key);
+  if (!v) return;
+  if (!v->is_array() || v->size() != 3) Fail(key, "expected [x, y, z], got " + v->dump());
+  for (int i = 0; i < 3; ++i) {
+    const auto& e = (*v)[static_cast<std::size_t>(i)];
+    if (!e.is_number() || !std::isfinite(e.get<double>())) {
+      Fail(key, "expected three finite numbers, got " + v->dump());
+    }
+    out[i] = e.get<double>();
+  }
+}
+
+void JsonReader::Object(const char* key, const std::function<void(JsonReader&)>& read) {
+  const auto* v = Find(key);
+  if (!v) return;
+  if (!v->is_object()) Fail(key, std::string("expected an object, got ") + v->type_name());
+  JsonReader child(*v, where_, FieldPath(key));
+  read(child);
+  child.RejectUnknown();
+}
+
+void JsonReader::RejectUnknown() const {
+  for (const auto& [key, value] : json_.items()) {
+    if (!known_.count(key)) {
+      std::string known;
+      for (const auto& k : known_) known += (known.empty() ? "" : ", ") + k;
+      Fail(key, "unknown key (known here: " + known + ")");
+    }
+  }
+}
+
+nlohmann::json ParseJsonText(const std::string& text, const std::string& where) {
+  try {
+    return nlohmann::json::parse(text);
+  } catch (const nlohmann::json::parse_error& e) {
+    // Turn nlohmann's byte offset into a line and column a person can go to.
+    const std::size_t at = std::min<std::size_t>(e.byte > 0 ? e.byte - 1 : 0, text.size());
+    int line = 1, col = 1;
+    for (std::size_t i = 0; i < at; ++i) {
+      if (text[i] == '\n') {
+        ++line;
+        col = 1;
+      } else {
+        ++col;
+      }
+    }
+    std::string msg = e.what();
+    const auto pos = msg.find("parse error");
+    if (pos != std::string::npos) msg = msg.substr(pos);
+    throw ConfigError(where + ":" + std::to_string(line) + ":" + std::to_string(col) +
+                      ": invalid JSON: " + msg);
+  }
+}
+
+nlohmann::json ParseJsonFile(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw ConfigError(path + ": cannot open the configuration file");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ParseJsonText(ss.str(), path);
+}
+
+}  // namespace gs360

@@ -1,0 +1,192 @@
+#include "daemon/rig_config.h"
+
+#include <cmath>
+#include <stdexcept>
+
+#include <nlohmann/json.hpp>
+
+#include "daemon/json_reader.h"
+#include "geometry/bvh.h"
+#include "geometry/mesh.h"
+
+namespace gs360 {
+namespace {
+
+void RequireFinite(const Eigen::Vector3d& v, const char* field) {
+  if (!v.allFinite()) {
+    throw std::invalid_argument(std::string("RigConfig.") + field + " must be finite");
+  }
+}
+
+nlohmann::json Vec(const Eigen::Vector3d& v) {
+  return {v.x(), v.y(), v.z()};
+}
+
+}  // namespace
+
+FinOptions RigConfig::DefaultFinOptions() {
+  FinOptions fins;
+  fins.thickness = 0.45;
+  fins.inset = 1.5;
+  fins.bottom_z = 1.5;
+  return fins;
+}
+
+Rigid3d RigConfig::cam_from_sensor() const {
+  // Camera axes = sensor axes (OpenCV z forward = sensor +z), centre at (0, 0, camera_z).
+  return Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.0, 0.0, -camera_z));
+}
+
+Rigid3d RigConfig::machine_from_sensor() const {
+  return Rigid3d(Eigen::Quaterniond::Identity(), base_in_machine);
+}
+
+void RigConfig::Check() const {
+  if (mesh_path.empty()) shape.Check();
+  fins.Check();
+  camera.Check();
+  if (!std::isfinite(camera_z) || camera_z >= fins.bottom_z) {
+    throw std::invalid_argument("RigConfig.camera_z must be finite and below fins.bottom_z (" +
+                                std::to_string(fins.bottom_z) + "), got " +
+                                std::to_string(camera_z));
+  }
+  RequireFinite(base_in_machine, "base_in_machine");
+  RequireFinite(tool_offset, "tool_offset");
+  if (!(ball_radius > 0.0 && ball_radius < 50.0)) {
+    throw std::invalid_argument("RigConfig.ball_radius must be in (0, 50) mm, got " +
+                                std::to_string(ball_radius));
+  }
+}
+
+RigGeometry MakeRigGeometry(const RigConfig& config) {
+  config.Check();
+  RigGeometry rig;
+  std::shared_ptr<const RevolutionProfile> fin_profile;
+  if (config.mesh_path.empty()) {
+    rig.profile = MakeProfile(config.shape);
+    rig.sensor_mesh = MakeRevolutionMesh(*rig.profile, config.shape.tessellation);
+    fin_profile = rig.profile;
+  } else {
+    MeshReport report;
+    rig.sensor_mesh = LoadMesh(config.mesh_path, MeshLoadOptions{}, &report);
+    // The fins follow the inner wall; for a mesh, a profile inscribed in it (the planner keeps
+    // using the mesh itself for visibility and collisions).
+    const Bvh bvh(rig.sensor_mesh);
+    fin_profile = MakeSplineProfile(FitInscribedProfile(bvh, 24));
+  }
+  rig.fins = MakeFins(config.fins, *fin_profile);
+  rig.camera = config.camera;
+  rig.cam_from_sensor = config.cam_from_sensor();
+  rig.machine_from_sensor = config.machine_from_sensor();
+  rig.tool_offset = config.tool_offset;
+  rig.Check();
+  return rig;
+}
+
+nlohmann::json RigConfigToJson(const RigConfig& c) {
+  nlohmann::json spline = nlohmann::json::array();
+  for (const auto& p : c.shape.spline.control_points) spline.push_back({p.x(), p.y()});
+  return {
+      {"shape",
+       {{"type", std::string(SensorShapeName(c.shape.shape))},
+        {"cylinder", {{"radius", c.shape.cylinder.radius}, {"height", c.shape.cylinder.height}}},
+        {"cone",
+         {{"base_radius", c.shape.cone.base_radius},
+          {"height", c.shape.cone.height},
+          {"tip_radius", c.shape.cone.tip_radius}}},
+        {"spline", {{"control_points", spline}}},
+        {"segments", c.shape.tessellation.segments},
+        {"rings", c.shape.tessellation.rings}}},
+      {"mesh_path", c.mesh_path},
+      {"fins",
+       {{"thickness", c.fins.thickness},
+        {"inset", c.fins.inset},
+        {"bottom_z", c.fins.bottom_z},
+        {"top_z", c.fins.top_z}}},
+      {"camera",
+       {{"width", c.camera.width},
+        {"height", c.camera.height},
+        {"fx", c.camera.fx},
+        {"fy", c.camera.fy},
+        {"cx", c.camera.cx},
+        {"cy", c.camera.cy},
+        {"skew", c.camera.skew},
+        {"k", {c.camera.k[0], c.camera.k[1], c.camera.k[2], c.camera.k[3]}},
+        {"max_theta", c.camera.max_theta},
+        {"camera_z", c.camera_z}}},
+      {"base_in_machine", Vec(c.base_in_machine)},
+      {"tool_offset", Vec(c.tool_offset)},
+      {"ball_radius", c.ball_radius},
+  };
+}
+
+RigConfig RigConfigFromJson(const nlohmann::json& json, const std::string& where) {
+  RigConfig c;
+  JsonReader r(json, where, "rig");
+  r.Object("shape", [&](JsonReader& s) {
+    std::string type(SensorShapeName(c.shape.shape));
+    s.Get("type", type);
+    try {
+      c.shape.shape = ParseSensorShape(type);
+    } catch (const std::exception& e) {
+      s.Fail("type", e.what());
+    }
+    s.Object("cylinder", [&](JsonReader& o) {
+      o.Get("radius", c.shape.cylinder.radius);
+      o.Get("height", c.shape.cylinder.height);
+    });
+    s.Object("cone", [&](JsonReader& o) {
+      o.Get("base_radius", c.shape.cone.base_radius);
+      o.Get("height", c.shape.cone.height);
+      o.Get("tip_radius", c.shape.cone.tip_radius);
+    });
+    s.Object("spline", [&](JsonReader& o) {
+      if (const auto* pts = o.Raw("control_points")) {
+        if (!pts->is_array()) o.Fail("control_points", "expected [[z, r], ...]");
+        c.shape.spline.control_points.clear();
+        for (const auto& p : *pts) {
+          if (!p.is_array() || p.size() != 2 || !p[0].is_number() || !p[1].is_number()) {
+            o.Fail("control_points", "expected [[z, r], ...], got element " + p.dump());
+          }
+          c.shape.spline.control_points.emplace_back(p[0].get<double>(), p[1].get<double>());
+        }
+      }
+    });
+    s.Get("segments", c.shape.tessellation.segments);
+    s.Get("rings", c.shape.tessellation.rings);
+  });
+  r.Get("mesh_path", c.mesh_path);
+  r.Object("fins", [&](JsonReader& o) {
+    o.Get("thickness", c.fins.thickness);
+    o.Get("inset", c.fins.inset);
+    o.Get("bottom_z", c.fins.bottom_z);
+    o.Get("top_z", c.fins.top_z);
+  });
+  r.Object("camera", [&](JsonReader& o) {
+    o.Get("width", c.camera.width);
+    o.Get("height", c.camera.height);
+    o.Get("fx", c.camera.fx);
+    o.Get("fy", c.camera.fy);
+    o.Get("cx", c.camera.cx);
+    o.Get("cy", c.camera.cy);
+    o.Get("skew", c.camera.skew);
+    if (const auto* k = o.Raw("k")) {
+      if (!k->is_array() || k->size() != 4) o.Fail("k", "expected [k1, k2, k3, k4]");
+      for (int i = 0; i < 4; ++i) c.camera.k[i] = (*k)[static_cast<std::size_t>(i)].get<double>();
+    }
+    o.Get("max_theta", c.camera.max_theta);
+    o.Get("camera_z", c.camera_z);
+  });
+  r.Get("base_in_machine", c.base_in_machine);
+  r.Get("tool_offset", c.tool_offset);
+  r.Get("ball_radius", c.ball_radius);
+  r.RejectUnknown();
+  try {
+    c.Check();
+  } catch (const std::invalid_argument& e) {
+    throw ConfigError(where + ": rig: " + e.what());
+  }
+  return c;
+}
+
+}  // namespace gs360

@@ -1,0 +1,209 @@
+#include "daemon/run_config.h"
+
+#include <stdexcept>
+
+#include <nlohmann/json.hpp>
+
+#include "daemon/json_reader.h"
+
+namespace gs360 {
+namespace {
+
+[[noreturn]] void Invalid(const std::string& field, const std::string& value,
+                          const std::string& rule) {
+  throw std::invalid_argument(field + " " + rule + ", got " + value);
+}
+
+// The plan options a user may set, by name. One table serves both directions.
+struct PlanDoubleField {
+  const char* name;
+  double PlanOptions::*member;
+};
+constexpr PlanDoubleField kPlanDoubles[] = {
+    {"candidate_factor", &PlanOptions::candidate_factor},
+    {"ball_radius", &PlanOptions::ball_radius},
+    {"press_depth", &PlanOptions::press_depth},
+    {"clearance", &PlanOptions::clearance},
+    {"stylus_radius", &PlanOptions::stylus_radius},
+    {"stylus_length", &PlanOptions::stylus_length},
+    {"holder_radius", &PlanOptions::holder_radius},
+    {"holder_length", &PlanOptions::holder_length},
+    {"press_feed_mm_per_min", &PlanOptions::press_feed_mm_per_min},
+    {"retract_feed_mm_per_min", &PlanOptions::retract_feed_mm_per_min},
+    {"settle_dwell_s", &PlanOptions::settle_dwell_s},
+    {"capture_time_s", &PlanOptions::capture_time_s},
+    {"status_poll_latency_s", &PlanOptions::status_poll_latency_s},
+    {"host_latency_s", &PlanOptions::host_latency_s},
+    {"reference_dwell_s", &PlanOptions::reference_dwell_s},
+    {"fov_margin_rad", &PlanOptions::fov_margin_rad},
+    {"image_margin_px", &PlanOptions::image_margin_px},
+    {"max_view_angle_rad", &PlanOptions::max_view_angle_rad},
+    {"travel_clearance", &PlanOptions::travel_clearance},
+    {"travel_limit_margin", &PlanOptions::travel_limit_margin},
+};
+struct PlanIntField {
+  const char* name;
+  int PlanOptions::*member;
+};
+constexpr PlanIntField kPlanInts[] = {
+    {"probe_count", &PlanOptions::probe_count},
+    {"reference_every", &PlanOptions::reference_every},
+    {"neighbours", &PlanOptions::neighbours},
+    {"max_improvement_passes", &PlanOptions::max_improvement_passes},
+};
+
+nlohmann::json PlanOptionsToJson(const PlanOptions& p) {
+  nlohmann::json j;
+  for (const auto& f : kPlanDoubles) j[f.name] = p.*(f.member);
+  for (const auto& f : kPlanInts) j[f.name] = p.*(f.member);
+  j["seed"] = p.seed;
+  j["count_is_kept"] = p.count_is_kept;
+  j["optimise_order"] = p.optimise_order;
+  j["return_to_start"] = p.return_to_start;
+  j["start_machine"] = {p.start_machine.x(), p.start_machine.y(), p.start_machine.z()};
+  return j;
+}
+
+void ReadPlanOptions(JsonReader& r, PlanOptions& p) {
+  for (const auto& f : kPlanDoubles) r.Get(f.name, p.*(f.member));
+  for (const auto& f : kPlanInts) r.Get(f.name, p.*(f.member));
+  r.Get("seed", p.seed);
+  r.Get("count_is_kept", p.count_is_kept);
+  r.Get("optimise_order", p.optimise_order);
+  r.Get("return_to_start", p.return_to_start);
+  r.Get("start_machine", p.start_machine);
+}
+
+}  // namespace
+
+void MachineConfig::Check() const {
+  if (uri.empty()) Invalid("machine.uri", "\"\"", "must name the controller's port");
+  if (baud <= 0) Invalid("machine.baud", std::to_string(baud), "must be > 0");
+  if (!(verify_tolerance_mm > 0.0)) {
+    Invalid("machine.verify_tolerance_mm", std::to_string(verify_tolerance_mm), "must be > 0");
+  }
+}
+
+void CameraConfig::Check() const {
+  if (uri.empty()) Invalid("camera.uri", "\"\"", "must name the frame source");
+  controls.Check();
+  capture.Check();
+}
+
+void EngineConfig::Check() const {
+  if (max_attempts < 1)
+    Invalid("engine.max_attempts", std::to_string(max_attempts), "must be >= 1");
+  if (recheck_probes < 0) {
+    Invalid("engine.recheck_probes", std::to_string(recheck_probes), "must be >= 0");
+  }
+  if (!(recheck_max_shift_px > 0.0)) {
+    Invalid("engine.recheck_max_shift_px", std::to_string(recheck_max_shift_px), "must be > 0");
+  }
+  if (!(sync_timeout_s > 0.0)) {
+    Invalid("engine.sync_timeout_s", std::to_string(sync_timeout_s), "must be > 0");
+  }
+  if (!(reconnect_timeout_s >= 0.0)) {
+    Invalid("engine.reconnect_timeout_s", std::to_string(reconnect_timeout_s), "must be >= 0");
+  }
+  if (max_recoveries < 0) {
+    Invalid("engine.max_recoveries", std::to_string(max_recoveries), "must be >= 0");
+  }
+}
+
+void RunConfig::Check() const {
+  rig.Check();
+  plan.Check();
+  machine.Check();
+  camera.Check();
+  engine.Check();
+  if (std::abs(plan.ball_radius - rig.ball_radius) > 1e-9) {
+    Invalid("plan.ball_radius", std::to_string(plan.ball_radius),
+            "must equal rig.ball_radius (" + std::to_string(rig.ball_radius) + ")");
+  }
+}
+
+nlohmann::json RunConfigToJson(const RunConfig& c) {
+  return {
+      {"name", c.name},
+      {"rig", RigConfigToJson(c.rig)},
+      {"plan", PlanOptionsToJson(c.plan)},
+      {"machine",
+       {{"uri", c.machine.uri},
+        {"baud", c.machine.baud},
+        {"home", c.machine.home},
+        {"verify_tolerance_mm", c.machine.verify_tolerance_mm}}},
+      {"camera",
+       {{"uri", c.camera.uri},
+        {"exposure_us", c.camera.controls.exposure_us},
+        {"analogue_gain", c.camera.controls.analogue_gain},
+        {"colour_gains", {c.camera.controls.colour_gains[0], c.camera.controls.colour_gains[1]}},
+        {"lock", c.camera.controls.lock},
+        {"width", c.camera.controls.width},
+        {"height", c.camera.controls.height},
+        {"frames_to_average", c.camera.capture.frames_to_average},
+        {"capture_timeout_ms", c.camera.capture.timeout.count()},
+        {"max_stale_frames", c.camera.capture.max_stale_frames}}},
+      {"engine",
+       {{"max_attempts", c.engine.max_attempts},
+        {"recheck_probes", c.engine.recheck_probes},
+        {"recheck_max_shift_px", c.engine.recheck_max_shift_px},
+        {"sync_timeout_s", c.engine.sync_timeout_s},
+        {"reconnect_timeout_s", c.engine.reconnect_timeout_s},
+        {"max_recoveries", c.engine.max_recoveries}}},
+  };
+}
+
+RunConfig RunConfigFromJson(const nlohmann::json& json, const std::string& where) {
+  RunConfig c;
+  JsonReader r(json, where);
+  r.Get("name", c.name);
+  if (const auto* rig = r.Raw("rig")) c.rig = RigConfigFromJson(*rig, where);
+  r.Object("plan", [&](JsonReader& o) { ReadPlanOptions(o, c.plan); });
+  c.plan.ball_radius = c.rig.ball_radius;
+  r.Object("machine", [&](JsonReader& o) {
+    o.Get("uri", c.machine.uri);
+    o.Get("baud", c.machine.baud);
+    o.Get("home", c.machine.home);
+    o.Get("verify_tolerance_mm", c.machine.verify_tolerance_mm);
+  });
+  r.Object("camera", [&](JsonReader& o) {
+    o.Get("uri", c.camera.uri);
+    o.Get("exposure_us", c.camera.controls.exposure_us);
+    o.Get("analogue_gain", c.camera.controls.analogue_gain);
+    if (const auto* g = o.Raw("colour_gains")) {
+      if (!g->is_array() || g->size() != 2 || !(*g)[0].is_number() || !(*g)[1].is_number()) {
+        o.Fail("colour_gains", "expected [red, blue], got " + g->dump());
+      }
+      c.camera.controls.colour_gains = {(*g)[0].get<double>(), (*g)[1].get<double>()};
+    }
+    o.Get("lock", c.camera.controls.lock);
+    o.Get("width", c.camera.controls.width);
+    o.Get("height", c.camera.controls.height);
+    o.Get("frames_to_average", c.camera.capture.frames_to_average);
+    int timeout_ms = static_cast<int>(c.camera.capture.timeout.count());
+    o.Get("capture_timeout_ms", timeout_ms);
+    c.camera.capture.timeout = std::chrono::milliseconds(timeout_ms);
+    o.Get("max_stale_frames", c.camera.capture.max_stale_frames);
+  });
+  r.Object("engine", [&](JsonReader& o) {
+    o.Get("max_attempts", c.engine.max_attempts);
+    o.Get("recheck_probes", c.engine.recheck_probes);
+    o.Get("recheck_max_shift_px", c.engine.recheck_max_shift_px);
+    o.Get("sync_timeout_s", c.engine.sync_timeout_s);
+    o.Get("reconnect_timeout_s", c.engine.reconnect_timeout_s);
+    o.Get("max_recoveries", c.engine.max_recoveries);
+  });
+  r.RejectUnknown();
+  try {
+    c.Check();
+  } catch (const std::invalid_argument& e) {
+    throw ConfigError(where + ": " + e.what());
+  }
+  return c;
+}
+
+RunConfig LoadRunConfigFile(const std::string& path) {
+  return RunConfigFromJson(ParseJsonFile(path), path);
+}
+
+}  // namespace gs360

@@ -1,0 +1,62 @@
+#pragma once
+// Everything a calibration run needs, stored as JSON in the run's database row so that a resume
+// uses exactly what the run started with.
+
+#include <chrono>
+#include <string>
+
+#include <nlohmann/json_fwd.hpp>
+
+#include "capture/capture_press.h"
+#include "capture/frame_source.h"
+#include "daemon/rig_config.h"
+#include "gcode/plan.h"
+
+namespace gs360 {
+
+struct MachineConfig {
+  std::string uri;  // serial device, pty path, "serial:VID:PID" or "tcp://host:port"
+  int baud = 115200;
+  // $H at the start of a run (and after a reset or reconnect). Without homing the operator
+  // vouches that MPos is right (verify_position then only checks the controller answers).
+  bool home = true;
+  double verify_tolerance_mm = 0.02;
+  void Check() const;
+};
+
+struct CameraConfig {
+  std::string uri;  // "libcamera:0", "v4l2:/dev/video0", "replay:DIR", "socket:PATH"
+  CameraControls controls;
+  PressCaptureOptions capture;  // K frames averaged, stale-frame rules
+  void Check() const;
+};
+
+struct EngineConfig {
+  int max_attempts = 2;               // per probe, across the whole run (resume included)
+  int recheck_probes = 3;             // committed probes re-pressed on resume (0 = none)
+  double recheck_max_shift_px = 1.5;  // impression centre shift that means the sensor moved
+  double sync_timeout_s = 120.0;      // longest wait for a press's G4 ok
+  double reconnect_timeout_s = 60.0;  // how long a vanished port is waited for
+  int max_recoveries = 10;            // resets / reconnects handled in one session before giving up
+  void Check() const;
+};
+
+struct RunConfig {
+  std::string name;
+  RigConfig rig;
+  PlanOptions plan;
+  MachineConfig machine;
+  CameraConfig camera;
+  EngineConfig engine;
+  // Throws std::invalid_argument naming the field and value.
+  void Check() const;
+};
+
+nlohmann::json RunConfigToJson(const RunConfig& config);
+// Strict: unknown keys, wrong types and invalid values are ConfigError naming `where` and the
+// field path. Absent keys keep their defaults.
+RunConfig RunConfigFromJson(const nlohmann::json& json, const std::string& where);
+// A JSON file; syntax errors name the line and column.
+RunConfig LoadRunConfigFile(const std::string& path);
+
+}  // namespace gs360

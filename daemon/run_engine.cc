@@ -1,0 +1,674 @@
+#include "daemon/run_engine.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <future>
+#include <optional>
+#include <stdexcept>
+#include <thread>
+
+#include <spdlog/spdlog.h>
+#include <nlohmann/json.hpp>
+
+#include "capture/capture_press.h"
+#include "capture/frame_source.h"
+#include "capture/impression.h"
+#include "daemon/json_reader.h"
+#include "gcode/grbl_client.h"
+#include "gcode/probe_program.h"
+#include "geometry/hash.h"
+
+namespace gs360 {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+constexpr const char* kPlanStage = "plan";
+
+std::string Fmt3(const Eigen::Vector3d& v) {
+  return "(" + FormatFixed(v.x(), 3) + ", " + FormatFixed(v.y(), 3) + ", " + FormatFixed(v.z(), 3) +
+         ")";
+}
+
+std::chrono::milliseconds Ms(double seconds) {
+  return std::chrono::milliseconds(static_cast<long long>(std::ceil(seconds * 1000.0)));
+}
+
+// How one probe's streaming ended.
+enum class StepKind {
+  kOk,
+  kProbeError,    // error:N on one of its lines, or no frame / no position: the probe fails
+  kAlarm,         // the machine raised an alarm: stop the run
+  kReset,         // the controller reset: everything in flight is void, position lost
+  kDisconnected,  // the port vanished
+  kStall,         // no sync ok within the timeout
+};
+
+struct Step {
+  StepKind kind = StepKind::kOk;
+  std::string message;
+};
+
+}  // namespace
+
+std::string_view ToString(RunOutcome outcome) {
+  switch (outcome) {
+    case RunOutcome::kDone:
+      return "done";
+    case RunOutcome::kPaused:
+      return "paused";
+    case RunOutcome::kStopped:
+      return "stopped";
+    case RunOutcome::kCancelled:
+      return "cancelled";
+    case RunOutcome::kFailed:
+      return "failed";
+  }
+  return "unknown";
+}
+
+// One Execute() call: owns the connections for its duration.
+class RunSession {
+ public:
+  RunSession(RunEngine& engine, std::int64_t run_id, SessionOverrides overrides)
+      : engine_(engine), run_id_(run_id), db_(engine.database_), overrides_(std::move(overrides)) {}
+
+  RunReport Run();
+
+ private:
+  // Set-up.
+  void LoadRun();
+  void ConnectMachine();
+  void HomeOrVerify();
+  // Probing.
+  Step PressProbe(const PlannedProbe& planned, bool take_reference, cv::Mat* frame_out,
+                  Eigen::Vector3d* mpos_out, Clock::time_point* sync_out,
+                  Clock::time_point* frame_time_out);
+  Step SendAndSync(const std::vector<std::string>& lines, Clock::time_point* sync_at);
+  Step Classify(const std::vector<GrblHandle>& handles);
+  std::optional<std::vector<Eigen::Vector3d>> TravelTo(const PlannedProbe& planned);
+  bool Recover(const Step& step);
+  void ReturnToSafety(const PlannedProbe& planned);
+  std::optional<std::string> RecheckSensor();
+  void Park();
+  void SendRetract(const ProbeProgram& program, const PlannedProbe& planned);
+  // Bookkeeping.
+  double ToUnix(Clock::time_point t) const {
+    return std::chrono::duration<double>(t - steady_origin_).count() + unix_origin_;
+  }
+  void Publish(const std::string& phase, int plan_index = -1);
+  void Event(EventLevel level, const std::string& message) {
+    if (level >= EventLevel::kWarning) {
+      spdlog::warn("run {}: {}", run_id_, message);
+    } else {
+      spdlog::info("run {}: {}", run_id_, message);
+    }
+    db_.AppendEvent(run_id_, level, message);
+  }
+
+  RunEngine& engine_;
+  std::int64_t run_id_;
+  RunDatabase db_;
+  SessionOverrides overrides_;
+  RunConfig config_;
+  ProbePlan plan_;
+  std::unique_ptr<TravelPlanner> travel_;
+  std::unique_ptr<GrblClient> client_;
+  std::unique_ptr<FrameSource> source_;
+  ReferenceSchedule references_;
+  Eigen::Vector3d position_ = Eigen::Vector3d::Zero();  // where the streamed lines leave the tool
+  int at_retract_of_ = -2;  // plan index whose retract position the tool is at (-1: plan start)
+  std::optional<std::int64_t> last_reference_at_;  // probes done when the last reference was taken
+  std::int64_t probes_done_ = 0;
+  int recoveries_ = 0;
+  RunReport report_;
+  Clock::time_point session_start_ = Clock::now();
+  Clock::time_point steady_origin_ = Clock::now();
+  double unix_origin_ =
+      std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+  double recent_probe_s_ = 0.0;  // exponential mean of seconds per committed probe
+};
+
+// ---------------------------------------------------------------------------------------------
+
+void RunSession::LoadRun() {
+  const auto run = db_.GetRun(run_id_);
+  if (!run)
+    throw std::runtime_error("no run " + std::to_string(run_id_) + " in " + db_.path().string());
+  if (IsTerminal(run->state)) {
+    throw std::runtime_error("run " + std::to_string(run_id_) + " is already " +
+                             std::string(ToString(run->state)) + "; nothing to resume");
+  }
+  const std::string where = db_.path().string() + " (run " + std::to_string(run_id_) + " config)";
+  config_ = RunConfigFromJson(ParseJsonText(run->config_json, where), where);
+  if (!overrides_.machine_uri.empty() && overrides_.machine_uri != config_.machine.uri) {
+    Event(EventLevel::kInfo, "this session uses the controller at " + overrides_.machine_uri +
+                                 " (configured: " + config_.machine.uri + ")");
+    config_.machine.uri = overrides_.machine_uri;
+  }
+  if (!overrides_.camera_uri.empty() && overrides_.camera_uri != config_.camera.uri) {
+    Event(EventLevel::kInfo, "this session uses the camera " + overrides_.camera_uri +
+                                 " (configured: " + config_.camera.uri + ")");
+    config_.camera.uri = overrides_.camera_uri;
+  }
+  plan_ = RunEngine::LoadPlan(db_, run_id_);
+  travel_ = std::make_unique<TravelPlanner>(MakeRigGeometry(config_.rig), config_.plan);
+  references_.every_m_probes = config_.plan.reference_every;
+  const ProbeCounts counts = db_.CountProbes(run_id_);
+  if (counts.total != static_cast<std::int64_t>(plan_.probes.size())) {
+    throw std::runtime_error("run " + std::to_string(run_id_) + ": the stored plan has " +
+                             std::to_string(plan_.probes.size()) + " probes but the database " +
+                             std::to_string(counts.total));
+  }
+  probes_done_ = counts.captured + counts.skipped;
+}
+
+void RunSession::ConnectMachine() {
+  Publish("connecting");
+  TransportOptions transport;
+  transport.baud = config_.machine.baud;
+  client_ = GrblClient::ForUri(config_.machine.uri, transport);
+  const GrblMachineInfo info = client_->Connect();
+  Event(EventLevel::kInfo, "connected to " + info.firmware + " " + info.version + " at " +
+                               config_.machine.uri + " (RX buffer " +
+                               std::to_string(info.rx_buffer_bytes) + " bytes)");
+  // The plan's time estimate assumed config_.plan.machine; a controller with other rates makes
+  // the ETA wrong (not the motion: GRBL enforces its own limits).
+  const MachineSettings actual = MachineSettings::FromGrblSettings(info.settings);
+  for (int axis = 0; axis < 3; ++axis) {
+    if (std::abs(actual.max_rate_mm_per_min[axis] -
+                 config_.plan.machine.max_rate_mm_per_min[axis]) > 1e-6) {
+      Event(EventLevel::kWarning,
+            "controller max rate $11" + std::to_string(axis) + " = " +
+                FormatFixed(actual.max_rate_mm_per_min[axis], 1) +
+                " mm/min differs from the plan's " +
+                FormatFixed(config_.plan.machine.max_rate_mm_per_min[axis], 1) +
+                "; the ETA will be off");
+      break;
+    }
+  }
+}
+
+void RunSession::HomeOrVerify() {
+  if (config_.machine.home) {
+    Publish("homing");
+    const GrblReply reply = client_->Home();
+    if (!reply.Ok()) {
+      throw std::runtime_error("homing failed at " + config_.machine.uri + ": " + reply.Describe());
+    }
+  } else {
+    if (client_->Alarmed()) {
+      const GrblReply unlock = client_->Unlock();
+      if (!unlock.Ok()) throw std::runtime_error("unlock ($X) failed: " + unlock.Describe());
+    }
+    client_->MarkPositionTrusted();
+  }
+  for (const std::string& line : ProgramPreamble()) {
+    const GrblReply r = client_->WaitForOk(client_->Send(line), std::chrono::seconds(10));
+    if (!r.Ok()) throw std::runtime_error("preamble '" + line + "' failed: " + r.Describe());
+  }
+  const auto status = client_->QueryStatus(std::chrono::seconds(5));
+  if (!status || !status->machine_position) {
+    throw std::runtime_error("the controller at " + config_.machine.uri +
+                             " reports no machine position");
+  }
+  position_ = *status->machine_position;
+  at_retract_of_ = (position_ - plan_.start_machine).norm() < 1e-3 ? -1 : -2;
+}
+
+void RunSession::Publish(const std::string& phase, int plan_index) {
+  RunProgress p;
+  p.run_id = run_id_;
+  p.counts = db_.CountProbes(run_id_);
+  const RunStatus status = db_.GetRunStatus(run_id_);
+  p.elapsed_s = status.elapsed_s;
+  p.phase = phase;
+  p.plan_index = plan_index;
+  const double remaining = static_cast<double>(p.counts.planned + p.counts.failed);
+  if (recent_probe_s_ > 0.0) {
+    p.probes_per_hour = 3600.0 / recent_probe_s_;
+    p.eta_s = remaining * recent_probe_s_;
+  } else if (!plan_.probes.empty()) {
+    p.eta_s = plan_.estimate.Total() * remaining / static_cast<double>(plan_.probes.size());
+  }
+  engine_.Publish(p);
+}
+
+std::optional<std::vector<Eigen::Vector3d>> RunSession::TravelTo(const PlannedProbe& planned) {
+  // Consecutive in plan order: the planner's waypoints are valid from where we are.
+  if (at_retract_of_ == planned.plan_index - 1) return planned.travel_machine;
+  return travel_->Path(position_, planned.approach_machine);
+}
+
+Step RunSession::Classify(const std::vector<GrblHandle>& handles) {
+  // Replies come in order, so once the last line is answered every earlier one is too.
+  for (const GrblHandle& h : handles) {
+    const GrblReply r = h.Wait(std::chrono::milliseconds(0));
+    if (r.alarm_code || client_->Alarmed()) {
+      const int code = r.alarm_code ? *r.alarm_code : client_->LastAlarm().value_or(0);
+      return {StepKind::kAlarm, "ALARM:" + std::to_string(code) + " (" + GrblAlarmText(code) +
+                                    ") after '" + r.line + "'"};
+    }
+    switch (r.kind) {
+      case GrblReplyKind::kOk:
+        break;
+      case GrblReplyKind::kError:
+        return {StepKind::kProbeError, "error:" + std::to_string(r.error_code) + " (" +
+                                           GrblErrorText(r.error_code) + ") on '" + r.line + "'"};
+      case GrblReplyKind::kReset:
+        return {StepKind::kReset, "controller reset: " + r.Describe()};
+      case GrblReplyKind::kRefused:
+        return {client_->Alarmed() ? StepKind::kAlarm : StepKind::kReset,
+                "line refused: " + r.Describe()};
+      case GrblReplyKind::kDisconnected:
+      case GrblReplyKind::kClosed:
+        return {StepKind::kDisconnected, "controller disconnected: " + r.Describe()};
+      case GrblReplyKind::kTimeout:
+        return {StepKind::kStall, "no reply within " +
+                                      FormatFixed(config_.engine.sync_timeout_s, 0) + " s to '" +
+                                      r.line + "'"};
+    }
+  }
+  return {StepKind::kOk, ""};
+}
+
+Step RunSession::SendAndSync(const std::vector<std::string>& lines, Clock::time_point* sync_at) {
+  std::vector<GrblHandle> handles;
+  handles.reserve(lines.size());
+  for (const std::string& line : lines) handles.push_back(client_->Send(line));
+  const GrblReply last = client_->WaitForOk(handles.back(), Ms(config_.engine.sync_timeout_s));
+  Step step = Classify(handles);
+  if (step.kind == StepKind::kOk) *sync_at = last.received_at;
+  return step;
+}
+
+Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference, cv::Mat* frame_out,
+                            Eigen::Vector3d* mpos_out, Clock::time_point* sync_out,
+                            Clock::time_point* frame_time_out) {
+  const auto path = TravelTo(planned_in);
+  if (!path) {
+    return {StepKind::kProbeError, "no collision-free travel from " + Fmt3(position_) +
+                                       " to the approach " + Fmt3(planned_in.approach_machine)};
+  }
+  PlannedProbe planned = planned_in;
+  planned.travel_machine = *path;
+  planned.reference_before = take_reference;
+  const ProbeProgram program = MakeProbeProgram(planned, config_.plan);
+
+  if (take_reference) {
+    Clock::time_point sync;
+    Step step = SendAndSync(program.reference, &sync);
+    position_ = planned.approach_machine;
+    at_retract_of_ = -2;
+    if (step.kind != StepKind::kOk) return step;
+    const PressCaptureResult ref = CapturePress(*source_, sync, config_.camera.capture);
+    if (!ref.ok()) {
+      return {StepKind::kProbeError, "reference frame: " + std::string(ToString(ref.status)) +
+                                         " (" + std::to_string(ref.frames_used) + " frames, " +
+                                         std::to_string(ref.stale_dropped) + " stale)"};
+    }
+    db_.AddReferenceFrame(run_id_, ref.image, ToUnix(ref.last_timestamp));
+    last_reference_at_ = probes_done_;
+  }
+
+  Clock::time_point sync;
+  Step step = SendAndSync(program.press, &sync);
+  position_ = planned.press_machine;
+  at_retract_of_ = -2;
+  if (step.kind != StepKind::kOk) return step;
+
+  // The status report (MPos) is fetched while the frames are being taken.
+  auto status = std::async(std::launch::async,
+                           [this] { return client_->QueryStatus(std::chrono::seconds(2)); });
+  const PressCaptureResult capture = CapturePress(*source_, sync, config_.camera.capture);
+  const auto sample = status.get();
+  SendRetract(program, planned);
+  if (!capture.ok()) {
+    return {StepKind::kProbeError, "press frame: " + std::string(ToString(capture.status)) + " (" +
+                                       std::to_string(capture.frames_used) + " frames, " +
+                                       std::to_string(capture.stale_dropped) + " stale)"};
+  }
+  if (!sample || !sample->machine_position) {
+    return {StepKind::kProbeError, "no status report (machine position) after the press"};
+  }
+  // GRBL lines carry no checksum: a garbled digit can still parse as a valid move. The machine
+  // must report the press position before the frame counts as that probe's.
+  const double off = (*sample->machine_position - planned.press_machine).norm();
+  if (off > config_.machine.verify_tolerance_mm) {
+    return {StepKind::kProbeError, "the machine reports " + Fmt3(*sample->machine_position) +
+                                       " instead of the press position " +
+                                       Fmt3(planned.press_machine) + " (" + FormatFixed(off, 3) +
+                                       " mm off: a corrupted line?)"};
+  }
+  *frame_out = capture.image;
+  *mpos_out = *sample->machine_position;
+  *sync_out = sync;
+  *frame_time_out = capture.last_timestamp;
+  return {StepKind::kOk, ""};
+}
+
+void RunSession::SendRetract(const ProbeProgram& program, const PlannedProbe& planned) {
+  for (const std::string& line : program.retract) client_->Send(line);
+  position_ = planned.retract_machine;
+  at_retract_of_ = planned.plan_index;
+}
+
+void RunSession::ReturnToSafety(const PlannedProbe& planned) {
+  // After a failed line the tool may be anywhere on this probe's way in; its approach point is
+  // straight out along the normal, so going there first is always clear.
+  client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
+  const auto status = client_->QueryStatus(std::chrono::seconds(2));
+  if (status && status->machine_position) position_ = *status->machine_position;
+  const TravelPlanner::Gaps gaps = travel_->ToolGaps(travel_->BallFromMachine(position_));
+  if (gaps.Min() < config_.plan.travel_clearance * 0.5) {
+    const GrblReply r = client_->WaitForOk(client_->Send(MachineMoveLine(planned.approach_machine)),
+                                           Ms(config_.engine.sync_timeout_s));
+    if (r.Ok()) position_ = planned.approach_machine;
+  }
+  at_retract_of_ = -2;
+}
+
+bool RunSession::Recover(const Step& step) {
+  if (++recoveries_ > config_.engine.max_recoveries) return false;
+  ++report_.recoveries;
+  Event(EventLevel::kWarning, step.message + "; recovering (" + std::to_string(recoveries_) + "/" +
+                                  std::to_string(config_.engine.max_recoveries) + ")");
+  if (step.kind == StepKind::kDisconnected || !client_->Connected()) {
+    Publish("reconnecting");
+    if (!client_->Reconnect(Ms(config_.engine.reconnect_timeout_s))) {
+      Event(EventLevel::kError, "the controller at " + config_.machine.uri +
+                                    " did not come back within " +
+                                    FormatFixed(config_.engine.reconnect_timeout_s, 0) + " s");
+      return false;
+    }
+  } else if (step.kind == StepKind::kStall) {
+    // A controller that stopped answering: a soft reset voids whatever it still holds.
+    if (!client_->SoftReset()) return false;
+  }
+  try {
+    HomeOrVerify();
+  } catch (const std::exception& e) {
+    Event(EventLevel::kError, std::string("after recovery: ") + e.what());
+    return false;
+  }
+  return true;
+}
+
+std::optional<std::string> RunSession::RecheckSensor() {
+  const auto captured = db_.ListCapturedProbes(run_id_);
+  const int want = std::min<int>(config_.engine.recheck_probes, static_cast<int>(captured.size()));
+  if (want == 0) return std::nullopt;
+  Publish("rechecking");
+  // Spread over the run: early, middle and late probes.
+  std::vector<std::size_t> picks;
+  for (int i = 0; i < want; ++i) {
+    picks.push_back(want == 1 ? captured.size() - 1
+                              : static_cast<std::size_t>(i) * (captured.size() - 1) /
+                                    static_cast<std::size_t>(want - 1));
+  }
+  cv::Mat reference;
+  int compared = 0;
+  double worst = 0.0;
+  for (std::size_t k = 0; k < picks.size(); ++k) {
+    const CapturedProbe& old = captured[picks[k]];
+    const PlannedProbe& planned = plan_.probes.at(static_cast<std::size_t>(old.probe.plan_index));
+    cv::Mat frame;
+    Eigen::Vector3d mpos;
+    Clock::time_point sync, frame_time;
+    const std::optional<FrameInfo> before_ref =
+        db_.NearestReferenceFrame(run_id_, ToUnix(Clock::now()));
+    const Step step = PressProbe(planned, k == 0, &frame, &mpos, &sync, &frame_time);
+    if (step.kind != StepKind::kOk) {
+      return "re-pressing probe " + std::to_string(old.probe.plan_index) +
+             " failed: " + step.message;
+    }
+    if (k == 0) {
+      const auto latest = db_.LatestFrame(run_id_, FrameKind::kReference);
+      if (latest && (!before_ref || latest->id != before_ref->id))
+        reference = db_.LoadFrame(latest->id);
+    }
+    const cv::Mat stored = db_.LoadFrame(old.frame_id);
+    const auto stored_ref_info = db_.NearestReferenceFrame(run_id_, old.frame_time);
+    if (!stored_ref_info || reference.empty()) continue;
+    const cv::Mat stored_ref = db_.LoadFrame(stored_ref_info->id);
+    const auto a = FindImpression(stored, stored_ref);
+    const auto b = FindImpression(frame, reference);
+    if (!a || !b) continue;
+    const double shift = (a->centroid - b->centroid).norm();
+    worst = std::max(worst, shift);
+    ++compared;
+    if (shift > config_.engine.recheck_max_shift_px) {
+      return "the sensor has moved since the run was interrupted: probe " +
+             std::to_string(old.probe.plan_index) + "'s impression was at (" +
+             FormatFixed(a->centroid.x(), 1) + ", " + FormatFixed(a->centroid.y(), 1) +
+             ") px and is now at (" + FormatFixed(b->centroid.x(), 1) + ", " +
+             FormatFixed(b->centroid.y(), 1) + ") px, a shift of " + FormatFixed(shift, 2) +
+             " px (limit " + FormatFixed(config_.engine.recheck_max_shift_px, 2) +
+             "). Re-seat the sensor exactly as before, or start a new run.";
+    }
+  }
+  if (compared == 0) {
+    Event(EventLevel::kWarning,
+          "resume: no re-pressed probe showed a comparable impression; "
+          "the sensor position could not be verified");
+  } else {
+    Event(EventLevel::kInfo, "resume: " + std::to_string(compared) +
+                                 " re-pressed probes match their stored frames (largest shift " +
+                                 FormatFixed(worst, 2) + " px)");
+  }
+  return std::nullopt;
+}
+
+void RunSession::Park() {
+  Publish("parking");
+  const auto path = travel_->Path(position_, plan_.start_machine);
+  if (!path) {
+    Event(EventLevel::kWarning,
+          "no clear path back to the start position; the tool stays at " + Fmt3(position_));
+    return;
+  }
+  std::vector<std::string> lines = TravelLines(*path);
+  lines.push_back(MachineMoveLine(plan_.start_machine));
+  for (const auto& line : lines) client_->Send(line);
+  position_ = plan_.start_machine;
+  client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
+}
+
+RunReport RunSession::Run() {
+  LoadRun();
+  const bool resuming = db_.CountProbes(run_id_).captured > 0;
+  source_ = OpenFrameSource(config_.camera.uri, config_.camera.controls);
+  source_->Start();
+  ConnectMachine();
+  HomeOrVerify();
+  db_.SetRunState(run_id_, RunState::kRunning);
+  Event(EventLevel::kInfo, std::string(resuming ? "resumed" : "started") + ": " +
+                               std::to_string(db_.CountProbes(run_id_).planned) + " probes to go");
+
+  auto finish = [&](RunOutcome outcome, RunState state, const std::string& message) {
+    report_.outcome = outcome;
+    report_.message = message;
+    if (client_ && client_->Connected() && !client_->Alarmed()) {
+      client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
+    }
+    db_.SetRunState(run_id_, state);
+    Event(outcome == RunOutcome::kFailed ? EventLevel::kError : EventLevel::kInfo, message);
+    report_.counts = db_.CountProbes(run_id_);
+    report_.seconds = std::chrono::duration<double>(Clock::now() - session_start_).count();
+    Publish("idle");
+    return report_;
+  };
+
+  if (resuming && config_.engine.recheck_probes > 0) {
+    if (auto moved = RecheckSensor()) {
+      return finish(RunOutcome::kFailed, RunState::kInterrupted, *moved);
+    }
+  }
+  last_reference_at_.reset();  // every session starts with a fresh reference frame
+
+  for (;;) {
+    switch (engine_.request_.load()) {
+      case 1:
+        return finish(RunOutcome::kStopped, RunState::kInterrupted, "stopped on request");
+      case 2:
+        return finish(RunOutcome::kPaused, RunState::kPaused, "paused");
+      case 3:
+        return finish(RunOutcome::kCancelled, RunState::kCancelled, "cancelled");
+      default:
+        break;
+    }
+    const auto probe = db_.NextPendingProbe(run_id_, config_.engine.max_attempts);
+    if (!probe) break;
+    const PlannedProbe& planned = plan_.probes.at(static_cast<std::size_t>(probe->plan_index));
+    if ((planned.press_machine - probe->plan.press_machine).norm() > 1e-6) {
+      return finish(
+          RunOutcome::kFailed, RunState::kInterrupted,
+          "stored plan and probe rows disagree at plan index " + std::to_string(probe->plan_index));
+    }
+    Publish("probing", probe->plan_index);
+    const auto t0 = Clock::now();
+    const bool take_reference = references_.NeedsReference(probes_done_, last_reference_at_);
+    cv::Mat frame;
+    Eigen::Vector3d mpos;
+    Clock::time_point sync, frame_time;
+    const Step step = PressProbe(planned, take_reference, &frame, &mpos, &sync, &frame_time);
+    switch (step.kind) {
+      case StepKind::kOk: {
+        CaptureReport report;
+        report.machine_position = mpos;
+        report.sync_time = ToUnix(sync);
+        report.frame_time = ToUnix(frame_time);
+        db_.CommitCapture(probe->id, frame, report);
+        ++report_.captured;
+        ++probes_done_;
+        const double dt = std::chrono::duration<double>(Clock::now() - t0).count();
+        recent_probe_s_ = recent_probe_s_ > 0.0 ? 0.9 * recent_probe_s_ + 0.1 * dt : dt;
+        break;
+      }
+      case StepKind::kProbeError:
+        db_.MarkProbeFailed(probe->id, step.message);
+        ++report_.failed;
+        Event(EventLevel::kWarning,
+              "probe " + std::to_string(probe->plan_index) + " failed: " + step.message);
+        ReturnToSafety(planned);
+        break;
+      case StepKind::kAlarm:
+        db_.MarkProbeFailed(probe->id, step.message);
+        ++report_.failed;
+        return finish(RunOutcome::kFailed, RunState::kInterrupted,
+                      "the machine raised an alarm at probe " + std::to_string(probe->plan_index) +
+                          ": " + step.message +
+                          ". Nothing moves until you check the machine; `resume` re-homes and "
+                          "continues.");
+      case StepKind::kReset:
+      case StepKind::kDisconnected:
+      case StepKind::kStall:
+        // Not the probe's fault: it stays pending and is probed again after recovery.
+        if (!Recover(step)) {
+          return finish(
+              RunOutcome::kFailed, RunState::kInterrupted,
+              "could not recover from: " + step.message + ". Resume when the machine is back.");
+        }
+        break;
+    }
+  }
+  Park();
+  const ProbeCounts counts = db_.CountProbes(run_id_);
+  return finish(RunOutcome::kDone, RunState::kDone,
+                "done: " + std::to_string(counts.captured) + " captured, " +
+                    std::to_string(counts.failed) + " failed, " + std::to_string(counts.skipped) +
+                    " skipped");
+}
+
+// ---------------------------------------------------------------------------------------------
+
+RunEngine::RunEngine(std::filesystem::path database) : database_(std::move(database)) {}
+
+std::int64_t RunEngine::CreateRun(const RunConfig& config, ProbePlan* plan_out) {
+  config.Check();
+  const RigGeometry rig = MakeRigGeometry(config.rig);
+  const ProbePlan plan = MakeProbePlan(rig, config.plan);
+  CheckTravel(plan, config.plan.machine, config.plan.travel_limit_margin);
+  RunDatabase db(database_);
+  const std::int64_t run_id =
+      db.CreateRun(RunConfigToJson(config).dump(), ToHex64(rig.sensor_mesh.Hash()), config.name);
+  std::vector<ProbePlanEntry> entries;
+  entries.reserve(plan.probes.size());
+  for (const PlannedProbe& p : plan.probes) {
+    entries.push_back(
+        {p.point_sensor, p.normal_sensor, p.approach_machine, p.press_machine, p.retract_machine});
+  }
+  db.InsertPlan(run_id, entries);
+  const std::string blob = PlanToJson(plan, config.plan).dump();
+  db.PutArtifact(run_id, kPlanStage, plan.options_hash,
+                 std::span(reinterpret_cast<const std::uint8_t*>(blob.data()), blob.size()),
+                 PlanSummaryJson(plan, config.plan).dump());
+  db.AppendEvent(run_id, EventLevel::kInfo,
+                 "planned " + std::to_string(plan.probes.size()) + " probes of " +
+                     std::to_string(plan.candidates) + " candidates; estimated " +
+                     FormatFixed(plan.estimate.Hours(), 2) + " h");
+  if (plan_out) *plan_out = plan;
+  return run_id;
+}
+
+ProbePlan RunEngine::LoadPlan(const RunDatabase& db, std::int64_t run_id) {
+  for (const ArtifactRecord& a : db.ListArtifacts(run_id)) {
+    if (a.stage != kPlanStage) continue;
+    const auto full = db.GetArtifact(run_id, kPlanStage, a.input_hash);
+    if (!full) break;
+    const std::string text(full->blob.begin(), full->blob.end());
+    return PlanFromJson(
+        ParseJsonText(text, db.path().string() + " (run " + std::to_string(run_id) + " plan)"));
+  }
+  throw std::runtime_error("run " + std::to_string(run_id) + " in " + db.path().string() +
+                           " has no stored plan");
+}
+
+RunReport RunEngine::Execute(std::int64_t run_id, const SessionOverrides& overrides) {
+  request_ = 0;
+  RunSession session(*this, run_id, overrides);
+  try {
+    return session.Run();
+  } catch (...) {
+    // Leave a resumable state behind whatever happened.
+    try {
+      RunDatabase db(database_);
+      const auto run = db.GetRun(run_id);
+      if (run && run->state == RunState::kRunning) db.SetRunState(run_id, RunState::kInterrupted);
+    } catch (...) {
+    }
+    throw;
+  }
+}
+
+void RunEngine::RequestStop() {
+  request_.store(1);
+}
+void RunEngine::RequestPause() {
+  request_.store(2);
+}
+void RunEngine::RequestCancel() {
+  request_.store(3);
+}
+
+void RunEngine::SetProgressCallback(ProgressCallback callback) {
+  std::lock_guard lock(progress_mutex_);
+  callback_ = std::move(callback);
+}
+
+RunProgress RunEngine::Progress() const {
+  std::lock_guard lock(progress_mutex_);
+  return progress_;
+}
+
+void RunEngine::Publish(const RunProgress& progress) {
+  ProgressCallback cb;
+  {
+    std::lock_guard lock(progress_mutex_);
+    progress_ = progress;
+    cb = callback_;
+  }
+  if (cb) cb(progress);
+}
+
+}  // namespace gs360

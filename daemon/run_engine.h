@@ -1,0 +1,112 @@
+#pragma once
+// The overnight run: plan, stream, capture at each press, store, resume.
+//
+// CreateRun() plans the probes and stores the run (config, plan, probe rows); it never moves
+// the machine. Execute() connects to the controller and the camera, homes (if configured), and
+// probes every pending probe in plan order, one database transaction per committed probe:
+//
+//   travel -> approach -> press (G1) -> G4 P<settle>  ... wait for the G4 `ok` (the sync point)
+//   -> K frames exposed after that ok, averaged -> status MPos -> COMMIT -> retract (G0)
+//
+// Motion between presses is streamed ahead (character counting); only the retract waits for
+// the frame. A no-contact reference frame is taken at the start of every session and every
+// `plan.reference_every` probes.
+//
+// What stops a run, and what it leaves:
+// - the probe's own failure (error:N on one of its lines, no frame in time): the probe is
+//   marked failed (retried until engine.max_attempts), the run goes on;
+// - a controller reset or a vanished port: reconnect, re-home, continue (at most
+//   engine.max_recoveries times per session);
+// - an alarm (limit, abort): the machine is left alone, the run becomes `interrupted` with the
+//   alarm's text; Execute() returns kFailed;
+// - RequestStop() (SIGTERM), RequestPause(), RequestCancel(): the current probe is finished,
+//   retracted and committed first; the run becomes interrupted / paused / cancelled.
+// Nothing committed is ever lost or probed again. On resume, Execute() first re-presses up to
+// engine.recheck_probes committed probes and compares their impression centres with the stored
+// frames; if the sensor has moved it refuses to continue (kFailed, with the measured shift).
+//
+// Threads: Execute() blocks its caller; the Request*() calls and Progress() may come from any
+// thread (RequestStop() is async-signal-safe). One Execute() at a time per engine.
+
+#include <atomic>
+#include <cstdint>
+#include <filesystem>
+#include <functional>
+#include <mutex>
+#include <string>
+
+#include "daemon/run_config.h"
+#include "gcode/plan.h"
+#include "storage/run_database.h"
+
+namespace gs360 {
+
+enum class RunOutcome { kDone, kPaused, kStopped, kCancelled, kFailed };
+std::string_view ToString(RunOutcome outcome);
+
+struct RunProgress {
+  std::int64_t run_id = 0;
+  ProbeCounts counts;
+  double elapsed_s = 0.0;        // time spent running, all sessions
+  double eta_s = -1.0;           // remaining time; -1 unknown
+  double probes_per_hour = 0.0;  // recent rate of this session
+  int plan_index = -1;           // probe in progress
+  std::string phase;             // connecting, homing, rechecking, probing, parking, idle
+};
+
+struct RunReport {
+  RunOutcome outcome = RunOutcome::kFailed;
+  std::string message;
+  std::int64_t captured = 0;  // committed in this session
+  std::int64_t failed = 0;    // failed attempts in this session
+  int recoveries = 0;         // resets / reconnects handled
+  double seconds = 0.0;       // wall time of this session
+  ProbeCounts counts;         // of the whole run, at the end
+};
+
+// Connection settings that may change between sessions of one run (the controller came back as
+// /dev/ttyUSB1, the camera server moved). Empty = as stored in the run's config.
+struct SessionOverrides {
+  std::string machine_uri;
+  std::string camera_uri;
+};
+
+class RunEngine {
+ public:
+  using ProgressCallback = std::function<void(const RunProgress&)>;
+
+  // The database is opened (and created) per call; `database` must be writable.
+  explicit RunEngine(std::filesystem::path database);
+
+  // Validates the config, plans, stores run + plan (probe rows and the full plan as the
+  // "plan" artifact). No motion. Throws ConfigError / std::invalid_argument / StorageError /
+  // std::runtime_error (nothing reachable). `plan_out` receives the plan if given.
+  std::int64_t CreateRun(const RunConfig& config, ProbePlan* plan_out = nullptr);
+
+  // Runs or resumes `run_id` until it ends, is paused / stopped / cancelled, or fails. Throws
+  // only for set-up errors before anything moved (unknown run, terminal run, unreadable config,
+  // camera or port that cannot be opened); the run is then left as it was, or `interrupted`.
+  RunReport Execute(std::int64_t run_id, const SessionOverrides& overrides = {});
+
+  void RequestStop();    // finish the current probe, retract, commit, return (resumable)
+  void RequestPause();   // the same, state paused
+  void RequestCancel();  // the same, state cancelled (terminal)
+
+  void SetProgressCallback(ProgressCallback callback);
+  RunProgress Progress() const;
+
+  // The stored plan of a run (the "plan" artifact).
+  static ProbePlan LoadPlan(const RunDatabase& db, std::int64_t run_id);
+
+ private:
+  friend class RunSession;
+  void Publish(const RunProgress& progress);
+
+  std::filesystem::path database_;
+  std::atomic<int> request_{0};  // 0 none, 1 stop, 2 pause, 3 cancel
+  mutable std::mutex progress_mutex_;
+  RunProgress progress_;
+  ProgressCallback callback_;
+};
+
+}  // namespace gs360

@@ -1,0 +1,59 @@
+#pragma once
+// A virtual rig plus a matching run configuration and a fresh database, for run-engine tests.
+
+#include <unistd.h>
+
+#include <atomic>
+#include <filesystem>
+#include <memory>
+#include <string>
+
+#include "cli/sim_bridge.h"
+#include "daemon/run_config.h"
+#include "daemon/run_engine.h"
+#include "sim/virtual_rig.h"
+
+namespace gs360::test {
+
+inline std::filesystem::path FreshDir(const std::string& name) {
+  static std::atomic<int> n{0};
+  auto dir = std::filesystem::temp_directory_path() /
+             ("gs360-" + name + "-" + std::to_string(::getpid()) + "-" + std::to_string(n++));
+  std::filesystem::remove_all(dir);
+  std::filesystem::create_directories(dir);
+  return dir;
+}
+
+struct RigFixture {
+  RunConfig config;
+  std::unique_ptr<VirtualRig> rig;
+  std::filesystem::path dir;
+  std::filesystem::path db;
+
+  // `candidates`: points sampled (about half are kept on the default cylinder); `time_scale` 0 is
+  // instant motion.
+  RigFixture(const std::string& name, int candidates, double time_scale, bool symlink = false) {
+    dir = FreshDir(name);
+    db = dir / "run.db";
+    config.name = name;
+    config.plan.probe_count = candidates;
+    config.plan.reference_every = 25;
+    VirtualRigOptions options;
+    options.rig = cli::SimRigOptionsFor(config.rig, 7);
+    options.camera.sensor.seed = 7;
+    options.cnc.time_scale = time_scale;
+    if (symlink) options.cnc.symlink_path = (dir / "ttyCNC").string();
+    options.frame_socket = dir / "camera.sock";
+    rig = std::make_unique<VirtualRig>(options);
+    config.machine.uri = symlink ? options.cnc.symlink_path : rig->PtyPath();
+    config.camera.uri = rig->FrameUri();
+    config.engine.reconnect_timeout_s = 10.0;
+  }
+  ~RigFixture() {
+    rig.reset();
+    std::error_code ec;
+    std::filesystem::remove_all(dir, ec);
+  }
+};
+
+}  // namespace gs360::test

@@ -1,0 +1,212 @@
+// The run engine end to end on the virtual rig, in-process: a clean run, pause / stop / cancel,
+// resume (including a moved sensor), and every fault the virtual CNC can inject.
+
+#include <catch2/catch.hpp>
+
+#include <set>
+#include <thread>
+
+#include "rig_fixture.h"
+#include "storage/run_database.h"
+
+using namespace gs360;
+using gs360::test::RigFixture;
+
+namespace {
+
+// Every captured probe has exactly one press frame, taken at the press position.
+void CheckCommitted(RigFixture& f, std::int64_t run_id) {
+  RunDatabaseOptions ro;
+  ro.read_only = true;
+  RunDatabase db(f.db, ro);
+  const auto captured = db.ListCapturedProbes(run_id);
+  const auto frames = db.ListFrames(run_id, FrameKind::kPress);
+  CHECK(frames.size() == captured.size());
+  std::set<std::int64_t> probes;
+  for (const auto& fr : frames) {
+    REQUIRE(fr.probe_id);
+    CHECK(probes.insert(*fr.probe_id).second);  // never two frames for one probe
+  }
+  CHECK(db.IntegrityCheck().empty());
+  const cli::CaptureTruth truth = cli::CheckCapturesAgainstTruth(f.rig->cnc(), db, run_id);
+  CHECK(truth.frames == static_cast<int>(captured.size()));
+  CHECK(truth.off_target == 0);
+  CHECK(truth.max_reported_error_mm < 0.002);
+}
+
+// Calls `action` once, from the progress callback, when `after` probes are committed.
+void AtProbe(RunEngine& engine, std::int64_t after, std::function<void()> action) {
+  auto done = std::make_shared<std::atomic<bool>>(false);
+  engine.SetProgressCallback([=](const RunProgress& p) {
+    if (p.counts.captured >= after && !done->exchange(true)) action();
+  });
+}
+
+}  // namespace
+
+TEST_CASE("a run captures every planned probe at its press position", "[daemon][run]") {
+  RigFixture f("clean", 40, 0.0);
+  RunEngine engine(f.db);
+  ProbePlan plan;
+  const auto run_id = engine.CreateRun(f.config, &plan);
+  REQUIRE(plan.probes.size() >= 10);
+  const RunReport report = engine.Execute(run_id);
+  CHECK(report.outcome == RunOutcome::kDone);
+  CHECK(report.counts.captured == static_cast<std::int64_t>(plan.probes.size()));
+  CHECK(report.counts.failed == 0);
+  CheckCommitted(f, run_id);
+  RunDatabase db(f.db);
+  CHECK(db.GetRun(run_id)->state == RunState::kDone);
+  CHECK(db.ListFrames(run_id, FrameKind::kReference).size() >= 1);
+  // A finished run cannot be executed again.
+  CHECK_THROWS_WITH(engine.Execute(run_id), Catch::Contains("already done"));
+}
+
+TEST_CASE("stop, pause and cancel finish the current probe and leave the run consistent",
+          "[daemon][run]") {
+  RigFixture f("stop", 40, 0.0);
+  RunEngine engine(f.db);
+  const auto run_id = engine.CreateRun(f.config);
+  AtProbe(engine, 5, [&] { engine.RequestStop(); });
+  RunReport report = engine.Execute(run_id);
+  CHECK(report.outcome == RunOutcome::kStopped);
+  const auto stopped_at = report.counts.captured;
+  CHECK(stopped_at >= 5);
+  {
+    RunDatabase db(f.db);
+    CHECK(db.GetRun(run_id)->state == RunState::kInterrupted);
+  }
+  CheckCommitted(f, run_id);
+
+  AtProbe(engine, stopped_at + 3, [&] { engine.RequestPause(); });
+  report = engine.Execute(run_id);
+  CHECK(report.outcome == RunOutcome::kPaused);
+  CHECK(report.counts.captured >= stopped_at + 3);
+  CheckCommitted(f, run_id);
+
+  AtProbe(engine, report.counts.captured + 2, [&] { engine.RequestCancel(); });
+  report = engine.Execute(run_id);
+  CHECK(report.outcome == RunOutcome::kCancelled);
+  CheckCommitted(f, run_id);
+  RunDatabase db(f.db);
+  CHECK(db.GetRun(run_id)->state == RunState::kCancelled);
+}
+
+TEST_CASE("resume refuses to continue when the sensor moved", "[daemon][run]") {
+  RigFixture f("moved", 40, 0.0);
+  RunEngine engine(f.db);
+  const auto run_id = engine.CreateRun(f.config);
+  AtProbe(engine, 8, [&] { engine.RequestStop(); });
+  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
+  const auto before = RunDatabase(f.db).CountProbes(run_id).captured;
+
+  // Knock the sensor 0.6 mm sideways on the machine bed: a second virtual rig, identical but for
+  // the mount, stands in for the disturbed one; the run resumes against it.
+  const auto moved_dir = test::FreshDir("moved2");
+  SimRigOptions shifted = cli::SimRigOptionsFor(f.config.rig, 7);
+  shifted.machine_from_sensor.translation += Eigen::Vector3d(0.6, 0.0, 0.0);
+  VirtualRigOptions options;
+  options.rig = shifted;
+  options.camera.sensor.seed = 7;
+  options.cnc.time_scale = 0.0;
+  options.frame_socket = moved_dir / "cam2.sock";
+  VirtualRig rig(options);
+  const RunReport report = engine.Execute(run_id, {rig.PtyPath(), rig.FrameUri()});
+  CHECK(report.outcome == RunOutcome::kFailed);
+  CHECK_THAT(report.message, Catch::Contains("sensor has moved"));
+  CHECK(RunDatabase(f.db).CountProbes(run_id).captured == before);
+  CHECK(RunDatabase(f.db).GetRun(run_id)->state == RunState::kInterrupted);
+
+  // Put back where it was, the same run resumes and finishes.
+  const RunReport ok = engine.Execute(run_id);
+  CHECK(ok.outcome == RunOutcome::kDone);
+  CheckCommitted(f, run_id);
+}
+
+// ---- faults: the run survives or stops cleanly with a message; nothing committed is lost ----
+
+namespace {
+
+struct FaultRun {
+  RunReport first;
+  RunReport final;
+  std::int64_t committed_before_fault = -1;
+};
+
+// Runs with `inject` fired after `after` committed probes; if the run stops, resumes once.
+FaultRun RunWithFault(RigFixture& f, std::int64_t after, const std::function<void()>& inject) {
+  f.config.engine.sync_timeout_s = 5.0;
+  RunEngine engine(f.db);
+  const auto run_id = engine.CreateRun(f.config);
+  FaultRun out;
+  AtProbe(engine, after, [&] {
+    out.committed_before_fault = RunDatabase(f.db).CountProbes(run_id).captured;
+    inject();
+  });
+  out.first = engine.Execute(run_id);
+  CHECK(out.committed_before_fault >= after);
+  // Nothing committed before the fault was lost.
+  CHECK(out.first.counts.captured >= out.committed_before_fault);
+  CheckCommitted(f, run_id);
+  out.final = out.first;
+  if (out.first.outcome != RunOutcome::kDone) {
+    CHECK_FALSE(out.first.message.empty());
+    out.final = engine.Execute(run_id);
+    CheckCommitted(f, run_id);
+  }
+  CHECK(out.final.outcome == RunOutcome::kDone);
+  CHECK(out.final.counts.planned == 0);
+  return out;
+}
+
+}  // namespace
+
+TEST_CASE("fault: bytes dropped on the way to the machine", "[daemon][fault]") {
+  RigFixture f("drop", 30, 0.0);
+  RunWithFault(f, 4, [&] { f.rig->cnc().DropNextBytes(3); });
+}
+
+TEST_CASE("fault: garbled bytes on the way to the machine", "[daemon][fault]") {
+  RigFixture f("garble", 30, 0.0);
+  RunWithFault(f, 4, [&] { f.rig->cnc().GarbleNextBytes(4); });
+}
+
+TEST_CASE("fault: garbled replies from the machine", "[daemon][fault]") {
+  RigFixture f("garble-reply", 30, 0.0);
+  RunWithFault(f, 4, [&] { f.rig->cnc().GarbleNextBytes(6, FaultDirection::kCncToHost); });
+}
+
+TEST_CASE("fault: the machine stalls its replies for a while", "[daemon][fault]") {
+  RigFixture f("stall", 30, 0.0);
+  const FaultRun r =
+      RunWithFault(f, 4, [&] { f.rig->cnc().StallReplies(std::chrono::milliseconds(1500)); });
+  CHECK(r.first.outcome == RunOutcome::kDone);  // shorter than the sync timeout: just slower
+}
+
+TEST_CASE("fault: USB unplug, the controller comes back under another name", "[daemon][fault]") {
+  RigFixture f("unplug", 30, 0.0, /*symlink=*/true);
+  const std::string before = f.rig->PtyPath();
+  UnplugOptions unplug;
+  unplug.replug_after = std::chrono::milliseconds(500);
+  const FaultRun r = RunWithFault(f, 4, [&] { f.rig->cnc().Unplug(unplug); });
+  CHECK(f.rig->PtyPath() != before);
+  CHECK(r.first.outcome == RunOutcome::kDone);  // reconnected, re-homed, carried on
+  CHECK(r.first.recoveries >= 1);
+}
+
+TEST_CASE("fault: hard-limit alarm in the middle of a move stops the run cleanly",
+          "[daemon][fault]") {
+  RigFixture f("alarm", 30, 0.0);
+  const FaultRun r = RunWithFault(f, 4, [&] { f.rig->cnc().RaiseAlarmDuringNextMove(1, 0.5); });
+  CHECK(r.first.outcome == RunOutcome::kFailed);
+  CHECK_THAT(r.first.message, Catch::Contains("ALARM:1"));
+}
+
+TEST_CASE("fault: an abort resets the controller and loses its position", "[daemon][fault]") {
+  RigFixture f("lostpos", 30, 0.0);
+  const FaultRun r = RunWithFault(f, 4, [&] {
+    f.rig->cnc().LosePositionOnReset(true);
+    f.rig->cnc().RaiseAlarmDuringNextMove(3, 0.3);
+  });
+  CHECK(r.final.outcome == RunOutcome::kDone);
+}
