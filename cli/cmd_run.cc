@@ -34,7 +34,9 @@ int ExecuteWithProgress(RunEngine& engine, std::int64_t run_id,
   sigaction(SIGINT, &sa, &old_int);
   RunReport report;
   try {
-    report = engine.Execute(run_id, overrides);
+    // The run has its own thread; this one only waits (signals set a flag the run polls).
+    engine.Start(run_id, overrides);
+    report = engine.Wait();
   } catch (...) {
     g_engine = nullptr;
     sigaction(SIGTERM, &old_term, nullptr);

@@ -584,6 +584,38 @@ RunReport RunSession::Run() {
 
 RunEngine::RunEngine(std::filesystem::path database) : database_(std::move(database)) {}
 
+RunEngine::~RunEngine() {
+  if (thread_.joinable()) {
+    RequestStop();
+    thread_.join();
+  }
+}
+
+void RunEngine::Start(std::int64_t run_id, const SessionOverrides& overrides) {
+  if (running_.exchange(true)) throw std::logic_error("RunEngine::Start: a run is already running");
+  if (thread_.joinable()) thread_.join();
+  thread_error_ = nullptr;
+  request_ = 0;
+  thread_ = std::thread([this, run_id, overrides] {
+    try {
+      thread_report_ = Execute(run_id, overrides);
+    } catch (...) {
+      thread_error_ = std::current_exception();
+    }
+    running_ = false;
+  });
+}
+
+bool RunEngine::Running() const {
+  return running_.load();
+}
+
+RunReport RunEngine::Wait() {
+  if (thread_.joinable()) thread_.join();
+  if (thread_error_) std::rethrow_exception(std::exchange(thread_error_, nullptr));
+  return thread_report_;
+}
+
 std::int64_t RunEngine::CreateRun(const RunConfig& config, ProbePlan* plan_out) {
   config.Check();
   const RigGeometry rig = MakeRigGeometry(config.rig);
@@ -625,7 +657,7 @@ ProbePlan RunEngine::LoadPlan(const RunDatabase& db, std::int64_t run_id) {
 }
 
 RunReport RunEngine::Execute(std::int64_t run_id, const SessionOverrides& overrides) {
-  request_ = 0;
+  if (!running_.load()) request_ = 0;  // Start() already cleared it: keep an early RequestStop
   RunSession session(*this, run_id, overrides);
   try {
     return session.Run();

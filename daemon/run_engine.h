@@ -25,15 +25,18 @@
 // engine.recheck_probes committed probes and compares their impression centres with the stored
 // frames; if the sensor has moved it refuses to continue (kFailed, with the measured shift).
 //
-// Threads: Execute() blocks its caller; the Request*() calls and Progress() may come from any
-// thread (RequestStop() is async-signal-safe). One Execute() at a time per engine.
+// Threads: Execute() blocks its caller; Start() runs it on the engine's own thread. The Request*()
+// calls and Progress() may come from any thread (RequestStop() is async-signal-safe). One run at a
+// time per engine.
 
 #include <atomic>
 #include <cstdint>
+#include <exception>
 #include <filesystem>
 #include <functional>
 #include <mutex>
 #include <string>
+#include <thread>
 
 #include "daemon/run_config.h"
 #include "gcode/plan.h"
@@ -77,6 +80,10 @@ class RunEngine {
 
   // The database is opened (and created) per call; `database` must be writable.
   explicit RunEngine(std::filesystem::path database);
+  // Stops a started run (RequestStop) and joins its thread.
+  ~RunEngine();
+  RunEngine(const RunEngine&) = delete;
+  RunEngine& operator=(const RunEngine&) = delete;
 
   // Validates the config, plans, stores run + plan (probe rows and the full plan as the
   // "plan" artifact). No motion. Throws ConfigError / std::invalid_argument / StorageError /
@@ -87,6 +94,12 @@ class RunEngine {
   // only for set-up errors before anything moved (unknown run, terminal run, unreadable config,
   // camera or port that cannot be opened); the run is then left as it was, or `interrupted`.
   RunReport Execute(std::int64_t run_id, const SessionOverrides& overrides = {});
+
+  // Execute() on the engine's own thread. Throws std::logic_error if one is already running.
+  // Wait() joins it and returns its report, rethrowing what Execute() threw.
+  void Start(std::int64_t run_id, const SessionOverrides& overrides = {});
+  bool Running() const;
+  RunReport Wait();
 
   void RequestStop();    // finish the current probe, retract, commit, return (resumable)
   void RequestPause();   // the same, state paused
@@ -103,6 +116,10 @@ class RunEngine {
   void Publish(const RunProgress& progress);
 
   std::filesystem::path database_;
+  std::thread thread_;
+  std::atomic<bool> running_{false};
+  RunReport thread_report_;
+  std::exception_ptr thread_error_;
   std::atomic<int> request_{0};  // 0 none, 1 stop, 2 pause, 3 cancel
   mutable std::mutex progress_mutex_;
   RunProgress progress_;

@@ -293,6 +293,9 @@ class VirtualCnc::Impl {
   void MachineDelay(Lock& lk, double seconds);  // uninterruptible except by abort (homing)
   int McProbeCycle(Lock& lk, const GcodeBlock& blk, const MoveRate& rate);
   bool TravelOk(const Eigen::Vector3d& target) const;
+  // MPos of `axis` after homing: -$27 toward + ($23 bit clear), -$13x + $27 toward -; 0 with
+  // HOMING_FORCE_SET_ORIGIN.
+  double HomedPosition(int axis) const;
   void LimitsSoftCheck(Lock& lk, const Eigen::Vector3d& target);
   void FlagWcoChange(Lock& lk) {
     Synchronize(lk);
@@ -1088,7 +1091,8 @@ int VirtualCnc::Impl::SystemExecuteLine(Lock& lk, const std::string& line) {
     case 'I':
       if (line.size() == 2) {
         Emit("[VER:" + std::string(kVersionBuild) + ":" + build_info_ + "]\r\n");
-        Emit("[OPT:V," + std::to_string(options_.planner_blocks) + "," +
+        Emit(std::string("[OPT:V") + (options_.homing_force_set_origin ? "Z" : "") + "," +
+             std::to_string(options_.planner_blocks) + "," +
              std::to_string(options_.rx_buffer_bytes) + "]\r\n");
         return kGrblOk;
       }
@@ -1314,9 +1318,21 @@ int VirtualCnc::Impl::GcExecuteLine(Lock& lk, const std::string& line) {
 
 bool VirtualCnc::Impl::TravelOk(const Eigen::Vector3d& target) const {
   for (int i = 0; i < 3; ++i) {
-    if (target[i] > 0.0 || target[i] < -settings_.max_travel_mm[i]) return false;
+    const bool negative = (settings_.homing_dir_mask >> i) & 1;
+    if (options_.homing_force_set_origin && negative) {  // travel is 0..+max
+      if (target[i] < 0.0 || target[i] > settings_.max_travel_mm[i]) return false;
+    } else if (target[i] > 0.0 || target[i] < -settings_.max_travel_mm[i]) {
+      return false;
+    }
   }
   return true;
+}
+
+double VirtualCnc::Impl::HomedPosition(int axis) const {
+  if (options_.homing_force_set_origin) return 0.0;
+  const bool negative = (settings_.homing_dir_mask >> axis) & 1;
+  return negative ? -settings_.max_travel_mm[axis] + settings_.homing_pulloff_mm
+                  : -settings_.homing_pulloff_mm;
 }
 
 void VirtualCnc::Impl::LimitsSoftCheck(Lock& lk, const Eigen::Vector3d& target) {
@@ -1464,12 +1480,14 @@ bool VirtualCnc::Impl::HomeAxes(Lock& lk, const std::vector<int>& axes) {
   const double feed = settings_.homing_feed_mm_per_min * std::sqrt(n);
   const double pulloff = settings_.homing_pulloff_mm;
   const double debounce = settings_.homing_debounce_ms / 1000.0;
-  Eigen::Vector3d sw = Eigen::Vector3d::Zero();   // switch positions (true frame)
+  // Switch positions in the true frame: one pull-off beyond where homing leaves the machine,
+  // so that a correct homing makes belief and truth agree.
+  Eigen::Vector3d sw = Eigen::Vector3d::Zero();
   Eigen::Vector3d dir = Eigen::Vector3d::Zero();  // direction toward the switch
   for (int i : axes) {
     const bool negative = (settings_.homing_dir_mask >> i) & 1;
     dir[i] = negative ? -1.0 : 1.0;
-    sw[i] = negative ? -settings_.max_travel_mm[i] : 0.0;
+    sw[i] = HomedPosition(i) + dir[i] * pulloff;
   }
   auto fail = [&](int alarm) {
     rt_alarm_ = alarm;
@@ -1507,12 +1525,8 @@ bool VirtualCnc::Impl::HomeAxes(Lock& lk, const std::vector<int>& axes) {
     MachineDelay(lk, debounce);
     if (Aborting()) return fail(kGrblAlarmHomingFailReset);
   }
-  // Machine position after homing: -pulloff toward +, -max_travel + pulloff toward -.
   const Eigen::Vector3d truth = exec_.PositionAt(MachineNow());
-  for (int i : axes) {
-    const double belief = dir[i] > 0 ? -pulloff : -settings_.max_travel_mm[i] + pulloff;
-    offset_[i] = truth[i] - belief;
-  }
+  for (int i : axes) offset_[i] = truth[i] - HomedPosition(i);
   return true;
 }
 

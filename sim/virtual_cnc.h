@@ -25,20 +25,30 @@
 //   (injected ALARM:1) behave the same way, with steppers stopped dead.
 // - Homing ($H): Z then X+Y, seek / pull-off / locate / pull-off with debounce delays, timed
 //   from $24-$27; afterwards MPos is -$27 on each axis homed toward + ($23 bit clear; toward -:
-//   -$13x + $27), exactly as GRBL without HOMING_FORCE_SET_ORIGIN. Status requests during
-//   homing are answered once homing ends (state Home), as on the firmware.
+//   -$13x + $27), exactly as a stock GRBL build; 0,0,0 with `homing_force_set_origin`.
+//   Soft limits then allow -$13x..0. A pull-off of 0 fails with ALARM:8 and a switch farther
+//   than 1.5 x $13x with ALARM:9, as on the firmware. Status requests during homing are
+//   answered once homing ends (state Home), as on the firmware.
 // - `?` gives `<State|MPos:x,y,z|FS:f,s>` (WPos per $10, `|Bf:` with $10 bit 1), plus `|WCO:`
 //   and `|Ov:` at GRBL's refresh cadence when `report_wco_and_overrides`.
 // - Positions are reported in whole steps ($100-$102); work offsets (G10 L2/L20, G54-G59, G92)
 //   force a buffer sync, as FORCE_BUFFER_SYNC_DURING_WCO_CHANGE does.
+// - Bytes cross the "UART" at `baud_rate` in both directions (a status report takes ~5 ms).
+//
+// G-code: G0 G1 G2 G3 (arcs split into chords by $12), G4, G10 L2/L20, G17-G19, G20/G21,
+// G28/G30 (.1), G38.2-G38.5 (no probe is wired: ALARM:5 / ALARM:4 as on a board without one),
+// G40, G43.1/G49, G53, G54-G59, G61, G80, G90/G91, G91.1, G92/G92.1, G93/G94, M0 M1 M2 M30,
+// M3-M5, M8/M9, F S T N. System: $ $$ $# $G $I $I= $N $Nx= $x= $C $X $H $J= $SLP $RST=.
+// Not modelled: feed/rapid/spindle overrides (0x90-0x9D are discarded, Ov stays 100), safety
+// door, parking, laser mode, spindle and coolant effects.
 //
 // Ground truth vs. belief: the machine has a true position (TruePosition, machine frame, mm) and
 // the controller's belief (what MPos reports). They agree unless position is lost: a power loss
 // (Unplug with power_loss, reset_on_open) restarts the controller at MPos 0,0,0 wherever the
 // machine stands; LosePositionOnReset(true) shifts the belief by a random offset whenever the
 // steppers are stopped dead (reset in motion, hard limit, injected alarm). Homing restores
-// agreement. The true frame is the machine frame of a correct homing: the switches sit at
-// 0 (toward +) or -$13x (toward -).
+// agreement. The true frame is the machine frame of a correct homing: the switches sit one
+// pull-off beyond the homed position (at 0 or -$13x on a stock build).
 //
 // Thread-safe: every public method may be called from any thread.
 
@@ -72,12 +82,16 @@ struct VirtualCncOptions {
   int baud_rate = 115200;
   int planner_blocks = 15;
   GrblSettings settings;  // the EEPROM at power-up; also what $RST=$ restores
+  // GRBL's HOMING_FORCE_SET_ORIGIN build option (`Z` in [OPT:]): homing leaves MPos at 0 on
+  // each axis instead of the pull-off position, and an axis homed toward - travels 0..+$13x.
+  bool homing_force_set_origin = false;
   // True machine position at power-up (the controller believes 0,0,0).
   Eigen::Vector3d initial_true_position = Eigen::Vector3d::Zero();
   // If set, a symlink kept pointing at the current pty slave (removed while unplugged).
   std::string symlink_path;
   // Arduino-style auto-reset: the controller power-cycles when a host opens the port, and
-  // output sent while no host has the port open is lost.
+  // output sent while no host has the port open is lost. Without it, such output (the
+  // power-up welcome, say) waits in the pty for the next host to open the port.
   bool reset_on_open = false;
   // Wall time from power-up to the welcome line (a bootloader's delay).
   std::chrono::milliseconds boot_delay{0};

@@ -210,3 +210,21 @@ TEST_CASE("fault: an abort resets the controller and loses its position", "[daem
   });
   CHECK(r.final.outcome == RunOutcome::kDone);
 }
+
+TEST_CASE("the engine runs on its own thread and can be stopped from another", "[daemon][run]") {
+  RigFixture f("thread", 40, 0.0);
+  RunEngine engine(f.db);
+  const auto run_id = engine.CreateRun(f.config);
+  engine.Start(run_id);
+  CHECK(engine.Running());
+  CHECK_THROWS_AS(engine.Start(run_id), std::logic_error);
+  for (int i = 0; i < 600 && engine.Progress().counts.captured < 3; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  engine.RequestStop();
+  const RunReport report = engine.Wait();
+  CHECK_FALSE(engine.Running());
+  CHECK(report.outcome == RunOutcome::kStopped);
+  CHECK(report.counts.captured >= 3);
+  CheckCommitted(f, run_id);
+}

@@ -239,7 +239,7 @@ TEST_CASE("error:N resolves only its own line and the stream goes on", "[grbl_cl
   CHECK(fake->Position().x() == 11.0);
 }
 
-TEST_CASE("an ALARM before the ok is attributed to its line; the reset after it voids the rest",
+TEST_CASE("an ALARM before the ok is attributed to its line, the reset after it voids the rest",
           "[grbl_client]") {
   auto fake = FakeGrbl::CreatePty();
   // GRBL 1.1 soft limit: ALARM:2 and [MSG:Reset to continue], then nothing until the host's
@@ -524,7 +524,7 @@ TEST_CASE("WaitIdle and VerifyPosition read the machine position", "[grbl_client
   CHECK(client.Send("G1 X0 F100").Wait(2s).Ok());
 }
 
-TEST_CASE("WaitForOk gives the host time of the ok; it times out while the line waits",
+TEST_CASE("WaitForOk gives the host time of the ok and times out while the line waits",
           "[grbl_client]") {
   auto fake = FakeGrbl::CreatePty();
   fake->SetResponder([](const std::string& line) -> std::optional<std::vector<std::string>> {

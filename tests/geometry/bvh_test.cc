@@ -292,7 +292,7 @@ TEST_CASE("Bvh is deterministic across builds, options and threads", "[bvh]") {
   }
 }
 
-TEST_CASE("Bvh handles stacked duplicates and clustered triangles; ties go to the lowest index",
+TEST_CASE("Bvh handles stacked duplicates and clustered triangles, ties go to the lowest index",
           "[bvh]") {
   TriangleMesh m;
   std::mt19937_64 rng(5);

@@ -265,7 +265,7 @@ TEST_CASE("ValidateAndRepair makes the winding consistent and outward", "[mesh]"
   }
 }
 
-TEST_CASE("ValidateAndRepair counts and removes duplicates, degenerates, NaN; welds", "[mesh]") {
+TEST_CASE("ValidateAndRepair counts and removes duplicates, degenerates, NaN and welds", "[mesh]") {
   const TriangleMesh original = SmallFinger();
   SECTION("duplicates (either winding)") {
     TriangleMesh m = original;

@@ -165,7 +165,7 @@ TEST_CASE("gel: the rigid model is the pipeline's sharp imprint", "[sim][camera]
   CHECK(area_soft > 1.15 * area_rigid);
 }
 
-TEST_CASE("gel: a ball clear of the surface deforms nothing; options are checked",
+TEST_CASE("gel: a ball clear of the surface deforms nothing, options are checked",
           "[sim][camera]") {
   const Finger& finger = DefaultFinger();
   const GelPatchBuilder builder(finger.mesh, GelDeformationOptions{});

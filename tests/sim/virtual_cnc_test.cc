@@ -806,3 +806,103 @@ TEST_CASE("VirtualCncOptions and fault arguments are checked", "[virtual_cnc]") 
   cnc.Stop();  // idempotent
   CHECK(cnc.PtyPath().empty());
 }
+
+TEST_CASE("Homing with HOMING_FORCE_SET_ORIGIN ends at 0,0,0", "[virtual_cnc]") {
+  VirtualCncOptions o;
+  o.time_scale = 50;
+  o.homing_force_set_origin = true;
+  o.initial_true_position = Eigen::Vector3d(-5, -6, -7);
+  VirtualCnc cnc(o);
+  Host host(cnc.PtyPath());
+  host.Until("[MSG:'$H'|'$X' to unlock]");
+  host.Send("$I\n");
+  CHECK(*host.Line() == "[VER:1.1h.20190825:]");
+  CHECK(*host.Line() == "[OPT:VZ,15,128]");
+  CHECK(*host.Line() == "ok");
+  CHECK(host.Command("$H", 10.0) == "ok");
+  CHECK(MPos(host.Status()).isZero());
+  CHECK(cnc.TruePositionNow().isZero(1e-9));
+  CHECK(host.Command("G0X-2") == "ok");
+  WaitState(host, "Idle");
+  CHECK(cnc.TruePositionNow().isApprox(Eigen::Vector3d(-2, 0, 0)));
+}
+
+TEST_CASE("Check mode - startup lines - restore - sleep - arcs - offsets - program flow - probe",
+          "[virtual_cnc]") {
+  VirtualCnc cnc(FastOptions(0));
+  Host host(cnc.PtyPath());
+  host.Until("Grbl 1.1h ['$' for help]");
+  // $C parses without moving; leaving it resets the controller.
+  host.Send("$C\n");
+  CHECK(*host.Line() == "[MSG:Enabled]");
+  CHECK(*host.Line() == "ok");
+  CHECK(host.Command("G0X-10") == "ok");
+  CHECK(host.Command("G5") == "error:20");
+  CHECK(cnc.TruePositionNow().isZero());
+  CHECK(StateOf(host.Status()) == "Check");
+  host.Send("$C\n");
+  CHECK(*host.Line() == "[MSG:Disabled]");
+  CHECK(*host.Line() == "ok");
+  CHECK(*host.Line() == "Grbl 1.1h ['$' for help]");
+  // Startup lines run after every reset (not in Alarm).
+  CHECK(host.Command("$N0=G91") == "ok");
+  host.Send("$N\n");
+  CHECK(*host.Line() == "$N0=G91");
+  CHECK(*host.Line() == "$N1=");
+  CHECK(*host.Line() == "ok");
+  host.Send("\x18");
+  CHECK(*host.Line() == "Grbl 1.1h ['$' for help]");
+  CHECK(*host.Line() == ">G91:ok");
+  host.Send("$G\n");
+  CHECK(*host.Line() == "[GC:G0 G54 G17 G21 G91 G94 M5 M9 T0 F0 S0]");
+  CHECK(*host.Line() == "ok");
+  CHECK(host.Command("$N0=") == "ok");
+  // G54 data survives resets until $RST=#.
+  CHECK(host.Command("G90G10L2P1X-3") == "ok");
+  host.Send("$#\n");
+  CHECK(*host.Line() == "[G54:-3.000,0.000,0.000]");
+  host.Until("ok");
+  host.Send("$RST=#\n");
+  CHECK(*host.Line() == "[MSG:Restoring defaults]");
+  CHECK(*host.Line() == "ok");
+  CHECK(*host.Line() == "Grbl 1.1h ['$' for help]");
+  host.Send("$#\n");
+  CHECK(*host.Line() == "[G54:0.000,0.000,0.000]");
+  host.Until("ok");
+  // A counter-clockwise half circle ends at its target; G92 shifts work coordinates.
+  CHECK(host.Command("G90G17G3X-20Y0I-10J0F600") == "ok");
+  WaitState(host, "Idle");
+  CHECK(cnc.TruePositionNow().isApprox(Eigen::Vector3d(-20, 0, 0), 1e-9));
+  CHECK(host.Command("G92X0") == "ok");
+  CHECK(host.Command("G0X-5") == "ok");
+  WaitState(host, "Idle");
+  CHECK(cnc.TruePositionNow()[0] == Approx(-25.0));
+  // M0 pauses like a feed hold; M2 ends the program.
+  host.Send("M0\n");
+  CHECK_FALSE(host.Line(0.2));
+  CHECK(StateOf(host.Status()) == "Hold:0");
+  host.Send("~");
+  CHECK(*host.Line() == "ok");
+  host.Send("M2\n");
+  CHECK(*host.Line() == "[MSG:Pgm End]");
+  CHECK(*host.Line() == "ok");
+  // No probe is wired: G38.2 runs to its target and fails; G38.4 fails at once.
+  host.Send("G38.2Z-2F100\n");
+  CHECK(*host.Line() == "ALARM:5");
+  CHECK(host.Line()->rfind("[PRB:", 0) == 0);
+  CHECK(*host.Line() == "ok");
+  CHECK(cnc.TruePositionNow()[2] == Approx(-2.0));
+  CHECK(host.Command("$X") == "ok");
+  host.Send("G38.4Z0F100\n");
+  CHECK(*host.Line() == "ALARM:4");
+  CHECK(*host.Line() == "ok");
+  CHECK(host.Command("$X") == "ok");
+  // Sleep: only a reset wakes it, into Alarm.
+  host.Send("$SLP\n");
+  CHECK(*host.Line() == "ok");
+  CHECK(*host.Line() == "[MSG:Sleeping]");
+  CHECK(StateOf(host.Status()) == "Sleep");
+  host.Send("\x18");
+  CHECK(*host.Line() == "Grbl 1.1h ['$' for help]");
+  CHECK(*host.Line() == "[MSG:'$H'|'$X' to unlock]");
+}
