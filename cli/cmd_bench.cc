@@ -58,13 +58,9 @@ void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
     config.plan.probe_count = o.probes;
     config.plan.count_is_kept = o.kept;
     config.plan.seed = o.seed;
-    VirtualRigOptions rig_options;
-    rig_options.rig = SimRigOptionsFor(config.rig, o.seed);
-    rig_options.camera.sensor.seed = o.seed;
-    rig_options.cnc.time_scale = o.time_scale;
-    VirtualRig rig(rig_options);
-    config.machine.uri = rig.PtyPath();
-    config.camera.uri = rig.FrameUri();
+    VirtualSetup setup = MakeVirtualSetup(config, o.time_scale, o.seed);
+    config = setup.config;
+    VirtualRig& rig = *setup.rig;
     const bool temp_db = o.db.empty();
     const std::filesystem::path db = temp_db
                                          ? std::filesystem::temp_directory_path() /

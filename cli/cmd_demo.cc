@@ -49,13 +49,9 @@ void RegisterDemoCommand(CLI::App& app, CommandContext& ctx) {
                 o.shape.c_str(), o.probes,
                 o.time_scale > 0.0 ? (std::to_string(o.time_scale) + "x real time").c_str()
                                    : "instant motion");
-    VirtualRigOptions rig_options;
-    rig_options.rig = SimRigOptionsFor(config.rig, o.seed);
-    rig_options.camera.sensor.seed = o.seed;
-    rig_options.cnc.time_scale = o.time_scale;
-    VirtualRig rig(rig_options);
-    config.machine.uri = rig.PtyPath();
-    config.camera.uri = rig.FrameUri();
+    VirtualSetup setup = MakeVirtualSetup(config, o.time_scale, o.seed);
+    config = setup.config;
+    VirtualRig& rig = *setup.rig;
     std::printf("virtual rig: CNC on %s, camera on %s (%s)\n", rig.PtyPath().c_str(),
                 rig.FrameUri().c_str(), rig.rig()->Describe().c_str());
 

@@ -16,6 +16,23 @@ SimRigOptions SimRigOptionsFor(const RigConfig& rig, std::uint64_t seed) {
   return sim;
 }
 
+VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t seed,
+                              const std::filesystem::path& frame_socket,
+                              const std::string& symlink) {
+  VirtualRigOptions options;
+  options.rig = SimRigOptionsFor(config.rig, seed);
+  options.camera.sensor.seed = seed;
+  options.cnc.time_scale = time_scale;
+  options.cnc.symlink_path = symlink;
+  options.frame_socket = frame_socket;
+  VirtualSetup setup;
+  setup.rig = std::make_unique<VirtualRig>(options);
+  config.machine.uri = symlink.empty() ? setup.rig->PtyPath() : symlink;
+  config.camera.uri = setup.rig->FrameUri();
+  setup.config = std::move(config);
+  return setup;
+}
+
 }  // namespace gs360::cli
 
 namespace gs360::cli {

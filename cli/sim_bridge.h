@@ -3,12 +3,26 @@
 // configured (nominal) sensor, fins, lens, mount and tool offset, then perturbs the camera to
 // make its own hidden truth. Used by `demo`, `sim-rig` and the end-to-end tests only.
 
+#include <filesystem>
+#include <memory>
+
 #include "daemon/rig_config.h"
+#include "daemon/run_config.h"
 #include "sim/virtual_rig.h"
 
 namespace gs360::cli {
 
 SimRigOptions SimRigOptionsFor(const RigConfig& rig, std::uint64_t seed = 1);
+
+// A virtual rig built from `config.rig` (plus its own hidden truth, drawn from `seed`), and the
+// config pointed at the rig's pty (or `symlink`, kept pointing at it) and camera socket.
+struct VirtualSetup {
+  RunConfig config;
+  std::unique_ptr<VirtualRig> rig;
+};
+VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t seed,
+                              const std::filesystem::path& frame_socket = {},
+                              const std::string& symlink = {});
 
 }  // namespace gs360::cli
 

@@ -38,15 +38,10 @@ struct RigFixture {
     config.name = name;
     config.plan.probe_count = candidates;
     config.plan.reference_every = 25;
-    VirtualRigOptions options;
-    options.rig = cli::SimRigOptionsFor(config.rig, 7);
-    options.camera.sensor.seed = 7;
-    options.cnc.time_scale = time_scale;
-    if (symlink) options.cnc.symlink_path = (dir / "ttyCNC").string();
-    options.frame_socket = dir / "camera.sock";
-    rig = std::make_unique<VirtualRig>(options);
-    config.machine.uri = symlink ? options.cnc.symlink_path : rig->PtyPath();
-    config.camera.uri = rig->FrameUri();
+    cli::VirtualSetup setup = cli::MakeVirtualSetup(config, time_scale, 7, dir / "camera.sock",
+                                                    symlink ? (dir / "ttyCNC").string() : "");
+    config = setup.config;
+    rig = std::move(setup.rig);
     config.engine.reconnect_timeout_s = 10.0;
   }
   ~RigFixture() {
