@@ -49,6 +49,15 @@ struct Step {
   std::string message;
 };
 
+// What a successful press produced.
+struct Press {
+  cv::Mat frame;
+  cv::Mat reference;  // the no-contact frame taken first, when one was asked for
+  Eigen::Vector3d mpos = Eigen::Vector3d::Zero();
+  std::chrono::steady_clock::time_point sync{};
+  std::chrono::steady_clock::time_point frame_time{};
+};
+
 }  // namespace
 
 std::string_view ToString(RunOutcome outcome) {
@@ -81,9 +90,7 @@ class RunSession {
   void ConnectMachine();
   void HomeOrVerify();
   // Probing.
-  Step PressProbe(const PlannedProbe& planned, bool take_reference, cv::Mat* frame_out,
-                  Eigen::Vector3d* mpos_out, Clock::time_point* sync_out,
-                  Clock::time_point* frame_time_out);
+  Step PressProbe(const PlannedProbe& planned, bool take_reference, Press* out);
   Step SendAndSync(const std::vector<std::string>& lines, Clock::time_point* sync_at);
   Step Classify(const std::vector<GrblHandle>& handles);
   std::optional<std::vector<Eigen::Vector3d>> TravelTo(const PlannedProbe& planned);
@@ -282,9 +289,7 @@ Step RunSession::SendAndSync(const std::vector<std::string>& lines, Clock::time_
   return step;
 }
 
-Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference, cv::Mat* frame_out,
-                            Eigen::Vector3d* mpos_out, Clock::time_point* sync_out,
-                            Clock::time_point* frame_time_out) {
+Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference, Press* out) {
   const auto path = TravelTo(planned_in);
   if (!path) {
     return {StepKind::kProbeError, "no collision-free travel from " + Fmt3(position_) +
@@ -309,6 +314,7 @@ Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference,
     }
     db_.AddReferenceFrame(run_id_, ref.image, ToUnix(ref.last_timestamp));
     last_reference_at_ = probes_done_;
+    out->reference = ref.image;
   }
 
   Clock::time_point sync;
@@ -340,10 +346,10 @@ Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference,
                                        Fmt3(planned.press_machine) + " (" + FormatFixed(off, 3) +
                                        " mm off: a corrupted line?)"};
   }
-  *frame_out = capture.image;
-  *mpos_out = *sample->machine_position;
-  *sync_out = sync;
-  *frame_time_out = capture.last_timestamp;
+  out->frame = capture.image;
+  out->mpos = *sample->machine_position;
+  out->sync = sync;
+  out->frame_time = capture.last_timestamp;
   return {StepKind::kOk, ""};
 }
 
@@ -412,27 +418,19 @@ std::optional<std::string> RunSession::RecheckSensor() {
   for (std::size_t k = 0; k < picks.size(); ++k) {
     const CapturedProbe& old = captured[picks[k]];
     const PlannedProbe& planned = plan_.probes.at(static_cast<std::size_t>(old.probe.plan_index));
-    cv::Mat frame;
-    Eigen::Vector3d mpos;
-    Clock::time_point sync, frame_time;
-    const std::optional<FrameInfo> before_ref =
-        db_.NearestReferenceFrame(run_id_, ToUnix(Clock::now()));
-    const Step step = PressProbe(planned, k == 0, &frame, &mpos, &sync, &frame_time);
+    Press press;
+    const Step step = PressProbe(planned, k == 0, &press);
     if (step.kind != StepKind::kOk) {
       return "re-pressing probe " + std::to_string(old.probe.plan_index) +
              " failed: " + step.message;
     }
-    if (k == 0) {
-      const auto latest = db_.LatestFrame(run_id_, FrameKind::kReference);
-      if (latest && (!before_ref || latest->id != before_ref->id))
-        reference = db_.LoadFrame(latest->id);
-    }
+    if (k == 0) reference = press.reference;
     const cv::Mat stored = db_.LoadFrame(old.frame_id);
     const auto stored_ref_info = db_.NearestReferenceFrame(run_id_, old.frame_time);
     if (!stored_ref_info || reference.empty()) continue;
     const cv::Mat stored_ref = db_.LoadFrame(stored_ref_info->id);
     const auto a = FindImpression(stored, stored_ref);
-    const auto b = FindImpression(frame, reference);
+    const auto b = FindImpression(press.frame, reference);
     if (!a || !b) continue;
     const double shift = (a->centroid - b->centroid).norm();
     worst = std::max(worst, shift);
@@ -528,17 +526,15 @@ RunReport RunSession::Run() {
     Publish("probing", probe->plan_index);
     const auto t0 = Clock::now();
     const bool take_reference = references_.NeedsReference(probes_done_, last_reference_at_);
-    cv::Mat frame;
-    Eigen::Vector3d mpos;
-    Clock::time_point sync, frame_time;
-    const Step step = PressProbe(planned, take_reference, &frame, &mpos, &sync, &frame_time);
+    Press press;
+    const Step step = PressProbe(planned, take_reference, &press);
     switch (step.kind) {
       case StepKind::kOk: {
         CaptureReport report;
-        report.machine_position = mpos;
-        report.sync_time = ToUnix(sync);
-        report.frame_time = ToUnix(frame_time);
-        db_.CommitCapture(probe->id, frame, report);
+        report.machine_position = press.mpos;
+        report.sync_time = ToUnix(press.sync);
+        report.frame_time = ToUnix(press.frame_time);
+        db_.CommitCapture(probe->id, press.frame, report);
         ++report_.captured;
         ++probes_done_;
         const double dt = std::chrono::duration<double>(Clock::now() - t0).count();
