@@ -92,7 +92,9 @@ void RegisterDemoCommand(CLI::App& app, CommandContext& ctx) {
         "  calibration (pose, rendering, training, validation) is not implemented yet; "
         "the accuracy summary arrives with it.\n");
     std::printf("demo finished in %s\n", FormatDuration(wall).c_str());
-    ctx.exit_code = (report.outcome == RunOutcome::kDone && truth.off_target == 0) ? 0 : 1;
+    ctx.exit_code =
+        (report.outcome == RunOutcome::kDone && truth.off_target == 0 && truth.unverified == 0) ? 0
+                                                                                                : 1;
   });
 }
 

@@ -36,6 +36,7 @@ namespace gs360::cli {
 struct CaptureTruth {
   int frames = 0;
   int off_target = 0;         // frames with the tool further than tolerance from the press point
+  int unverified = 0;  // frames older than the virtual CNC's kept motion history
   double max_error_mm = 0.0;  // largest |true - planned press| at sync or frame time
   double max_reported_error_mm = 0.0;  // largest |reported MPos - true position| at frame time
 };

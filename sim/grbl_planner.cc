@@ -489,7 +489,10 @@ std::optional<FiredAlarm> MotionExecutor::ApplyStep(State& s, const Step& step) 
 void MotionExecutor::Record(const MotionPiece& piece) {
   if (!(piece.t1 > piece.t0)) return;
   history_.push_back(piece);
-  while (history_.size() > options_.history_pieces) history_.pop_front();
+  while (history_.size() > options_.history_pieces) {
+    history_.pop_front();
+    history_truncated_ = true;
+  }
 }
 
 void MotionExecutor::AdvanceTo(double t) {
@@ -545,6 +548,14 @@ Eigen::Vector3d MotionExecutor::PositionAt(double t) const {
     return s.position;
   }
   if (history_.empty()) return state_.position;
+  // Before the oldest kept piece the answer is only known if nothing was ever evicted (then it
+  // is the starting position). Ground truth must not guess.
+  if (history_truncated_ && t < history_.front().t0) {
+    throw std::out_of_range("MotionExecutor::PositionAt: machine time " + std::to_string(t) +
+                            " s is older than the kept history (from " +
+                            std::to_string(history_.front().t0) + " s, " +
+                            std::to_string(history_.size()) + " pieces); raise history_pieces");
+  }
   auto it = std::upper_bound(history_.begin(), history_.end(), t,
                              [](double value, const MotionPiece& p) { return value < p.t0; });
   if (it == history_.begin()) return history_.front().p0;

@@ -163,8 +163,9 @@ class MotionExecutor {
 
   // Time of the last state change (the executor's clock).
   double StateTime() const { return state_.t; }
-  // Position and speed at any time: from the recorded history for the past (before the oldest
-  // recorded piece: that piece's start), predicted from the current plan for the future.
+  // Position and speed at any time: from the recorded history for the past, predicted from the
+  // current plan for the future. Before the oldest recorded piece: the starting position if no
+  // piece was ever evicted, else PositionAt throws std::out_of_range (the past is forgotten).
   Eigen::Vector3d PositionAt(double t) const;
   double SpeedAt(double t) const;
   // End time of the piece being executed (when something next changes), +inf when nothing runs.
@@ -219,6 +220,7 @@ class MotionExecutor {
   double previous_nominal_ = 0.0;
   std::optional<FiredAlarm> fired_;
   std::deque<MotionPiece> history_;
+  bool history_truncated_ = false;  // pieces were evicted: the past before front() is unknown
 };
 
 }  // namespace gs360

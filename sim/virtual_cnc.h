@@ -99,7 +99,9 @@ struct VirtualCncOptions {
   bool report_wco_and_overrides = true;
   // Largest per-axis belief error (mm) when position is lost (LosePositionOnReset).
   double lost_position_max_mm = 0.5;
-  std::size_t history_pieces = 1u << 15;  // executed motion pieces kept for TruePosition()
+  // Executed motion pieces kept for TruePosition(); older times throw std::out_of_range once
+  // pieces were evicted (about 6-8 pieces per calibration probe).
+  std::size_t history_pieces = 1u << 15;
   std::uint64_t seed = 1;                 // fault-injection randomness
 
   // Throws std::invalid_argument naming the field and its value.

@@ -110,6 +110,7 @@ TEST_CASE("SIGKILL at random moments, resume, and every reachable probe has exac
   const cli::CaptureTruth truth = cli::CheckCapturesAgainstTruth(f.rig->cnc(), db, 1);
   CHECK(truth.frames == total);
   CHECK(truth.off_target == 0);
+  CHECK(truth.unverified == 0);
   CHECK(truth.max_error_mm < 0.005);
 }
 

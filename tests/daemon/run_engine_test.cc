@@ -31,6 +31,7 @@ void CheckCommitted(RigFixture& f, std::int64_t run_id) {
   const cli::CaptureTruth truth = cli::CheckCapturesAgainstTruth(f.rig->cnc(), db, run_id);
   CHECK(truth.frames == static_cast<int>(captured.size()));
   CHECK(truth.off_target == 0);
+  CHECK(truth.unverified == 0);
   CHECK(truth.max_reported_error_mm < 0.002);
 }
 

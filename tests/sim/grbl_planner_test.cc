@@ -284,3 +284,21 @@ TEST_CASE("Executor: planner capacity - stop - history - system moves", "[grbl_p
   CHECK(ex.History(0, 1e6).back().t1 == Approx(1.0 + 0.05 + 0.975));
   CHECK(ex.PositionAt(100.0).isApprox(at_stop + Eigen::Vector3d(10, 0, 0)));
 }
+
+TEST_CASE("Executor: the past before the kept history is an error, not a guess", "[grbl_planner]") {
+  MotionExecutor::Options options;
+  options.history_pieces = 4;
+  MotionExecutor ex(options, Eigen::Vector3d::Zero(), 0.0);
+  ex.SetLimits(TestLimits());
+  std::vector<MoveRequest> moves;
+  for (int i = 1; i <= 6; ++i)
+    moves.push_back({Eigen::Vector3d(-5.0 * i, -3.0 * (i % 2), 0), Feed(1200)});
+  const double finish = RunAll(ex, moves);
+  CHECK(ex.PositionAt(finish + 1.0)[0] == Approx(-30.0));   // the end is still known
+  CHECK_THROWS_AS(ex.PositionAt(0.01), std::out_of_range);  // evicted
+  // Without eviction, the time before the first piece is the starting position.
+  MotionExecutor full({}, Eigen::Vector3d(-1, -2, -3), 0.0);
+  full.SetLimits(TestLimits());
+  RunAll(full, {{Eigen::Vector3d(-10, -2, -3), Feed(1200)}});
+  CHECK(full.PositionAt(-1.0).isApprox(Eigen::Vector3d(-1, -2, -3)));
+}
