@@ -4,9 +4,18 @@
 #include <array>
 #include <chrono>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
+#include <new>
 #include <stdexcept>
 #include <string>
+
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
+#if defined(__linux__)
+#include <sys/mman.h>
+#endif
 
 namespace gs360 {
 namespace {
@@ -53,6 +62,17 @@ inline F4 Min(F4 a, F4 b) {
 }
 inline F4 Max(F4 a, F4 b) {
   return a > b ? a : b;
+}
+inline F4 Abs(F4 a) {
+  return a < 0.0f ? -a : a;
+}
+// Bit k set when lane k of the comparison result `m` (all ones / all zeros) is set.
+inline unsigned MoveMask(I4 m) {
+#if defined(__SSE2__)
+  return static_cast<unsigned>(_mm_movemask_ps(reinterpret_cast<__m128>(m)));
+#else
+  return (m[0] ? 1u : 0u) | (m[1] ? 2u : 0u) | (m[2] ? 4u : 0u) | (m[3] ? 8u : 0u);
+#endif
 }
 
 float RoundDown(double v) {
@@ -231,6 +251,35 @@ struct WatertightRay {
 
 }  // namespace
 
+namespace {
+constexpr std::size_t kHugePage = std::size_t{1} << 21;
+constexpr std::size_t kLargeBlock = std::size_t{1} << 20;
+constexpr std::size_t kSmallAlignment = 64;
+}  // namespace
+
+void* Bvh::AllocateLarge(std::size_t bytes) {
+#if defined(__linux__)
+  if (bytes >= kLargeBlock) {
+    const std::size_t size = (bytes + kHugePage - 1) / kHugePage * kHugePage;
+    void* p = std::aligned_alloc(kHugePage, size);
+    if (p == nullptr) throw std::bad_alloc();
+    madvise(p, size, MADV_HUGEPAGE);  // a hint: failure only costs speed
+    return p;
+  }
+#endif
+  return ::operator new(bytes, std::align_val_t(kSmallAlignment));
+}
+
+void Bvh::DeallocateLarge(void* p, std::size_t bytes) noexcept {
+#if defined(__linux__)
+  if (bytes >= kLargeBlock) {
+    std::free(p);
+    return;
+  }
+#endif
+  ::operator delete(p, std::align_val_t(kSmallAlignment));
+}
+
 void BvhOptions::Check() const {
   if (max_leaf_size < 1 || max_leaf_size > 64) {
     throw std::invalid_argument("BvhOptions.max_leaf_size must be in [1, 64], got " +
@@ -279,20 +328,22 @@ Bvh::Bvh(const TriangleMesh& mesh, const BvhOptions& options) : mesh_(mesh) {
   const double pad = 1e-5 * diag + 1e-6 * max_abs + 1e-30;
 
   // Exactly degenerate triangles (zero cross product) can never be hit: leave them out.
-  order_.reserve(nt);
+  std::vector<std::int32_t> order;  // binary-tree leaf order -> triangle index
+  order.reserve(nt);
   for (int t = 0; t < nt; ++t) {
     const Eigen::Vector3i& f = mesh_.triangles[t];
     const Eigen::Vector3d c = (mesh_.vertices[f[1]] - mesh_.vertices[f[0]])
                                   .cross(mesh_.vertices[f[2]] - mesh_.vertices[f[0]]);
-    if (c.squaredNorm() > 0.0) order_.push_back(t);
+    if (c.squaredNorm() > 0.0) order.push_back(t);
   }
-  const int n = static_cast<int>(order_.size());
+  const int n = static_cast<int>(order.size());
   if (n == 0) {
     stats_.build_seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     return;
   }
-  Builder builder{options, {}, {}, order_};
+  max_abs_coordinate_ = max_abs;
+  Builder builder{options, {}, {}, order};
   builder.tri_box.resize(nt);
   builder.centroid.resize(nt);
   for (int t = 0; t < nt; ++t) {
@@ -304,8 +355,35 @@ Bvh::Bvh(const TriangleMesh& mesh, const BvhOptions& options) : mesh_(mesh) {
   builder.nodes.reserve(2 * n / std::max(1, options.max_leaf_size) + 1);
   builder.Build(0, n, 0);
 
+  // Appends the triangles order[begin, end) as packs of four; returns the first pack.
+  std::vector<std::int32_t> record_of(nv, -1);  // mesh vertex -> vertices_ index
+  auto add_leaf = [&](int begin, int end) {
+    const int first = static_cast<int>(packs_.size());
+    for (int p = begin; p < end; p += 4) {
+      TrianglePack4 pack;
+      for (int lane = 0; lane < 4; ++lane) {
+        // Padding lanes repeat the first triangle (masked out by the leaf's count).
+        const int t = order[p + lane < end ? p + lane : p];
+        triangle_.push_back(p + lane < end ? t : -1);
+        for (int j = 0; j < 3; ++j) {
+          const int mv = mesh_.triangles[t][j];
+          if (record_of[mv] < 0) {
+            record_of[mv] = static_cast<std::int32_t>(vertices_.size());
+            vertices_.push_back({mesh_.vertices[mv], mesh_.normals[mv]});
+          }
+          pack.vertex[j][lane] = record_of[mv];
+          for (int a = 0; a < 3; ++a)
+            pack.v[j][a][lane] = static_cast<float>(mesh_.vertices[mv][a]);
+        }
+      }
+      packs_.push_back(pack);
+    }
+    return first;
+  };
+
   // Collapse the binary tree into 4-wide nodes, depth first: each node takes up to four
-  // descendants, opening the inner candidate with the largest box surface first.
+  // descendants, opening the inner candidate with the largest box surface first. Leaves get
+  // their packs in the same depth-first order.
   const auto& bnodes = builder.nodes;
   std::vector<std::pair<int, int>> todo = {{0, 0}};  // (binary node, Node4 index)
   nodes_.emplace_back();
@@ -351,7 +429,7 @@ Bvh::Bvh(const TriangleMesh& mesh, const BvhOptions& options) : mesh_(mesh) {
       node.hi_y[k] = RoundUp(c.box.hi.y() + pad);
       node.hi_z[k] = RoundUp(c.box.hi.z() + pad);
       if (c.count > 0) {
-        node.child[k] = c.index;
+        node.child[k] = add_leaf(c.index, c.index + c.count);
         node.count[k] = c.count;
         ++stats_.leaves;
       } else {
@@ -363,13 +441,9 @@ Bvh::Bvh(const TriangleMesh& mesh, const BvhOptions& options) : mesh_(mesh) {
     }
     nodes_[n4] = node;
   }
-  prepared_.resize(n);
-  leaf_normals_.resize(n);
-  for (int i = 0; i < n; ++i) {
-    const Eigen::Vector3i& f = mesh_.triangles[order_[i]];
-    prepared_[i] = {mesh_.vertices[f[0]], mesh_.vertices[f[1]], mesh_.vertices[f[2]]};
-    leaf_normals_[i] = {mesh_.normals[f[0]], mesh_.normals[f[1]], mesh_.normals[f[2]]};
-  }
+  packs_.shrink_to_fit();
+  vertices_.shrink_to_fit();
+  triangle_.shrink_to_fit();
   stats_.nodes = static_cast<int>(nodes_.size());
   stats_.max_depth = builder.max_depth;
   stats_.build_seconds =
@@ -379,7 +453,7 @@ Bvh::Bvh(const TriangleMesh& mesh, const BvhOptions& options) : mesh_(mesh) {
 template <bool kAnyHit>
 int Bvh::Traverse(const Ray& ray, double t_min, double t_max, double* best_t, double* best_b1,
                   double* best_b2) const {
-  if (prepared_.empty()) return -1;
+  if (packs_.empty()) return -1;
   const Eigen::Vector3d& d = ray.direction;
   if (!ray.origin.allFinite() || !d.allFinite() || d.squaredNorm() == 0.0) return -1;
   if (!(t_max >= t_min)) return -1;
@@ -406,6 +480,33 @@ int Bvh::Traverse(const Ray& ray, double t_min, double t_max, double* best_t, do
                ? std::numeric_limits<float>::infinity()
                : static_cast<float>(t) * kGrow;
   };
+
+  // Float pre-test: the watertight test's edge functions u, v, w in float, with the same axis
+  // permutation and shear. With e = 2^-24, L = max |vertex coordinate| + max |origin
+  // coordinate|: each float relative coordinate is within 2.01 e L of the exact one (rounding
+  // of vertex, origin, difference), each sheared one within D = 8.1 e L (plus the shear's own
+  // rounding, |sx|, |sy| <= 1), so with P = the largest |sheared coordinate| of the triangle
+  // each float edge function is within 4 P D + 2 D^2 + 5 e P^2 of the exact one. The double
+  // test's own error is ~2^-29 of that. A lane is rejected only when one edge function is below
+  // -E and another above +E with E twice that bound: the double test then surely sees opposite
+  // signs and rejects too, so results are exactly those of the double test alone. Beyond
+  // L = 1e15 (float overflow of P^2) the pre-test is off.
+  const double max_abs_origin = ray.origin.cwiseAbs().maxCoeff();
+  const double big_l = max_abs_coordinate_ + max_abs_origin;
+  const bool pretest = big_l <= 1e15;
+  constexpr double kE = 1.0 / 16777216.0;  // 2^-24
+  const float dd = static_cast<float>(10.0 * kE * big_l + 1e-37);
+  const F4 e_lin = Splat(pretest ? 8.0f * dd : std::numeric_limits<float>::infinity());
+  const F4 e_quad = Splat(static_cast<float>(10.0 * kE));
+  const F4 e_const = Splat(4.0f * dd * dd + 1e-37f);
+  const int kx = wray.kx, ky = wray.ky, kz = wray.kz;
+  const F4 ro_x = Splat(static_cast<float>(ray.origin[kx]));
+  const F4 ro_y = Splat(static_cast<float>(ray.origin[ky]));
+  const F4 ro_z = Splat(static_cast<float>(ray.origin[kz]));
+  const F4 sx4 = Splat(static_cast<float>(wray.sx));
+  const F4 sy4 = Splat(static_cast<float>(wray.sy));
+  static constexpr I4 kLane = {0, 1, 2, 3};
+
   double best = t_max;
   float best_f = to_tmax_f(best);
   int best_i = -1;
@@ -420,20 +521,45 @@ int Bvh::Traverse(const Ray& ray, double t_min, double t_max, double* best_t, do
   Entry cur{0, 0, 0.0f};  // the root
   while (true) {
     if (cur.count > 0) {
-      for (int i = cur.child; i < cur.child + cur.count; ++i) {
-        const PreparedTriangle& tri = prepared_[i];
-        double t, b1, b2;
-        if (!wray.Intersect(tri.v0, tri.v1, tri.v2, t_min, best, &t, &b1, &b2)) continue;
-        if constexpr (kAnyHit) {
-          return i;
-        } else {
-          if (best_i >= 0 && t == best && order_[i] > order_[best_i]) continue;
-          best = t;
-          best_f = to_tmax_f(best);
-          best_i = i;
-          *best_t = t;
-          *best_b1 = b1;
-          *best_b2 = b2;
+      const int last = cur.child + (cur.count - 1) / 4;
+      for (int p = cur.child; p <= last; ++p) {
+        const TrianglePack4& pack = packs_[p];
+        // Sheared float vertex coordinates relative to the ray, 4 triangles at a time.
+        F4 sxv[3], syv[3];
+        for (int j = 0; j < 3; ++j) {
+          const F4 az = Load(pack.v[j][kz]) - ro_z;
+          sxv[j] = (Load(pack.v[j][kx]) - ro_x) - sx4 * az;
+          syv[j] = (Load(pack.v[j][ky]) - ro_y) - sy4 * az;
+        }
+        const F4 u = sxv[2] * syv[1] - syv[2] * sxv[1];
+        const F4 v = sxv[0] * syv[2] - syv[0] * sxv[2];
+        const F4 w = sxv[1] * syv[0] - syv[1] * sxv[0];
+        const F4 mag = Max(Max(Max(Abs(sxv[0]), Abs(syv[0])), Max(Abs(sxv[1]), Abs(syv[1]))),
+                           Max(Abs(sxv[2]), Abs(syv[2])));
+        const F4 err = mag * (e_lin + e_quad * mag) + e_const;
+        const I4 miss = (Min(Min(u, v), w) < -err) & (Max(Max(u, v), w) > err);
+        const I4 valid = kLane < (cur.count - 4 * (p - cur.child));
+        unsigned candidates = MoveMask(valid & ~miss);
+        while (candidates != 0) {
+          const int lane = __builtin_ctz(candidates);
+          candidates &= candidates - 1;
+          const int i = 4 * p + lane;
+          double t, b1, b2;
+          if (!wray.Intersect(vertices_[pack.vertex[0][lane]].position,
+                              vertices_[pack.vertex[1][lane]].position,
+                              vertices_[pack.vertex[2][lane]].position, t_min, best, &t, &b1, &b2))
+            continue;
+          if constexpr (kAnyHit) {
+            return i;
+          } else {
+            if (best_i >= 0 && t == best && triangle_[i] > triangle_[best_i]) continue;
+            best = t;
+            best_f = to_tmax_f(best);
+            best_i = i;
+            *best_t = t;
+            *best_b1 = b1;
+            *best_b2 = b2;
+          }
         }
       }
     } else {
@@ -446,13 +572,15 @@ int Bvh::Traverse(const Ray& ray, double t_min, double t_max, double* best_t, do
           Min(Min(Max(t0x, t1x), Max(t0y, t1y)), Min(Max(t0z, t1z), Splat(best_f))) * grow4;
       I4 child;
       std::memcpy(&child, n.child, sizeof(child));
-      const I4 hit = (tnear <= tfar) & (child >= 0);  // empty slots have child -1
-      Entry found[4];
-      int nf = 0;
-      for (int k = 0; k < 4; ++k) {
-        if (hit[k]) found[nf++] = {n.child[k], n.count[k], tnear[k]};
-      }
-      if (nf > 0) {
+      unsigned hit = MoveMask((tnear <= tfar) & (child >= 0));  // empty slots have child -1
+      if (hit != 0) {
+        Entry found[4];
+        int nf = 0;
+        do {
+          const int k = __builtin_ctz(hit);
+          hit &= hit - 1;
+          found[nf++] = {n.child[k], n.count[k], tnear[k]};
+        } while (hit != 0);
         // Nearest first: sort by entry distance (descending), push all but the nearest.
         for (int a = 1; a < nf; ++a) {
           for (int b = a; b > 0 && found[b].t > found[b - 1].t; --b)
@@ -476,18 +604,20 @@ std::optional<RayHit> Bvh::Intersect(const Ray& ray, double t_min, double t_max)
   double t = 0.0, b1 = 0.0, b2 = 0.0;
   const int i = Traverse<false>(ray, t_min, t_max, &t, &b1, &b2);
   if (i < 0) return std::nullopt;
+  const TrianglePack4& pack = packs_[i / 4];
+  const VertexRecord& r0 = vertices_[pack.vertex[0][i % 4]];
+  const VertexRecord& r1 = vertices_[pack.vertex[1][i % 4]];
+  const VertexRecord& r2 = vertices_[pack.vertex[2][i % 4]];
   RayHit hit;
   hit.t = t;
-  hit.triangle = order_[i];
+  hit.triangle = triangle_[i];
   hit.b1 = b1;
   hit.b2 = b2;
   hit.point = ray.origin + t * ray.direction;
-  const PreparedTriangle& tri = prepared_[i];
-  const Eigen::Vector3d gn = (tri.v1 - tri.v0).cross(tri.v2 - tri.v0);
+  const Eigen::Vector3d gn = (r1.position - r0.position).cross(r2.position - r0.position);
   const double gl = gn.norm();
   hit.geometric_normal = gl > 0.0 ? Eigen::Vector3d(gn / gl) : Eigen::Vector3d::UnitZ();
-  const auto& n = leaf_normals_[i];
-  const Eigen::Vector3d sn = (1.0 - b1 - b2) * n[0] + b1 * n[1] + b2 * n[2];
+  const Eigen::Vector3d sn = (1.0 - b1 - b2) * r0.normal + b1 * r1.normal + b2 * r2.normal;
   const double sl = sn.norm();
   hit.normal = sl > 0.0 ? Eigen::Vector3d(sn / sl) : hit.geometric_normal;
   hit.front_face = ray.direction.dot(hit.geometric_normal) < 0.0;

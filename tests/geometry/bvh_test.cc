@@ -344,3 +344,114 @@ TEST_CASE("Bvh handles stacked duplicates and clustered triangles, ties go to th
   }
   CHECK(bvh.stats().max_depth < 95);
 }
+
+namespace {
+
+struct ExactHit {
+  double t = 0.0;
+  int triangle = -1;
+  double b1 = 0.0, b2 = 0.0;
+};
+
+// Reference for the exactness check: the watertight test (Woop, Benthin, Wald 2013) written out
+// again, in double, over every triangle: closest t, lowest index among equal t. The Bvh must give
+// the same triangle and t (its pre-tests and box culling may only skip triangles this rejects).
+std::optional<ExactHit> BruteWatertight(const TriangleMesh& m, const Ray& ray, double t_min,
+                                        double t_max) {
+  const Eigen::Vector3d& d = ray.direction;
+  int kz = 0;
+  if (std::abs(d.y()) > std::abs(d[kz])) kz = 1;
+  if (std::abs(d.z()) > std::abs(d[kz])) kz = 2;
+  int kx = (kz + 1) % 3, ky = (kx + 1) % 3;
+  if (d[kz] < 0.0) std::swap(kx, ky);
+  const double sx = d[kx] / d[kz], sy = d[ky] / d[kz], sz = 1.0 / d[kz];
+  std::optional<ExactHit> best;
+  for (int i = 0; i < m.NumTriangles(); ++i) {
+    const Eigen::Vector3d a = m.vertices[m.triangles[i][0]] - ray.origin;
+    const Eigen::Vector3d b = m.vertices[m.triangles[i][1]] - ray.origin;
+    const Eigen::Vector3d c = m.vertices[m.triangles[i][2]] - ray.origin;
+    const double ax = a[kx] - sx * a[kz], ay = a[ky] - sy * a[kz];
+    const double bx = b[kx] - sx * b[kz], by = b[ky] - sy * b[kz];
+    const double cx = c[kx] - sx * c[kz], cy = c[ky] - sy * c[kz];
+    const double u = cx * by - cy * bx, v = ax * cy - ay * cx, w = bx * ay - by * ax;
+    if ((u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0)) continue;
+    const double det = u + v + w;
+    if (det == 0.0) continue;
+    const double az = sz * a[kz], bz = sz * b[kz], cz = sz * c[kz];
+    const double t = (u * az + v * bz + w * cz) / det;
+    if (!(t >= t_min && t <= t_max)) continue;
+    if (!best || t < best->t) best = ExactHit{t, i, v / det, w / det};
+  }
+  return best;
+}
+
+// Rays that stress the float pre-test: aimed exactly at vertices and edge midpoints (the edge
+// functions are ~0 there), grazing, from far away, with non-unit directions and finite intervals.
+void CheckExactAgainstBruteForce(const TriangleMesh& m, const Eigen::Vector3d& centre, double size,
+                                 std::uint64_t seed) {
+  const Bvh bvh(m);
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  int hits = 0, checked = 0;
+  for (int i = 0; i < 1500; ++i) {
+    Ray ray;
+    double t_min = 0.0, t_max = kInf;
+    const Eigen::Vector3i& f = m.triangles[rng() % m.triangles.size()];
+    const Eigen::Vector3d& a = m.vertices[f[0]];
+    const Eigen::Vector3d& b = m.vertices[f[1]];
+    switch (i % 5) {
+      case 0:  // at a vertex, from inside the bounding box
+        ray.origin = centre + 0.5 * size * Eigen::Vector3d(u(rng), u(rng), u(rng));
+        ray.direction = (a - ray.origin).normalized();
+        break;
+      case 1:  // at an edge midpoint, non-unit direction
+        ray.origin = centre + 0.5 * size * Eigen::Vector3d(u(rng), u(rng), u(rng));
+        ray.direction = 7.3 * (0.5 * (a + b) - ray.origin);
+        break;
+      case 2:  // from far away at a vertex
+        ray.origin = centre + 50.0 * size * RandomUnit(rng);
+        ray.direction = (a - ray.origin).normalized();
+        break;
+      case 3:  // random, finite interval
+        ray.origin = centre + 0.6 * size * Eigen::Vector3d(u(rng), u(rng), u(rng));
+        ray.direction = RandomUnit(rng);
+        t_min = 0.1 * size * (1.0 + u(rng));
+        t_max = t_min + 0.5 * size * (1.0 + u(rng));
+        break;
+      default:  // axis-parallel or nearly so
+        ray.origin = centre + 0.6 * size * Eigen::Vector3d(u(rng), u(rng), u(rng));
+        ray.direction = Eigen::Vector3d::Zero();
+        ray.direction[i % 3] = u(rng) < 0.0 ? -1.0 : 1.0;
+        ray.direction[(i + 1) % 3] = 1e-12 * u(rng);
+        break;
+    }
+    const auto ref = BruteWatertight(m, ray, t_min, t_max);
+    const auto hit = bvh.Intersect(ray, t_min, t_max);
+    INFO("ray " << i);
+    REQUIRE(ref.has_value() == hit.has_value());
+    CHECK(bvh.Occluded(ray, t_min, t_max) == ref.has_value());
+    ++checked;
+    if (!ref) continue;
+    ++hits;
+    CHECK(hit->triangle == ref->triangle);
+    CHECK(std::abs(hit->t - ref->t) <= 1e-12 * std::abs(ref->t));
+    CHECK(hit->b1 == ref->b1);
+    CHECK(hit->b2 == ref->b2);
+  }
+  CHECK(checked == 1500);
+  CHECK(hits > 900);
+}
+
+}  // namespace
+
+TEST_CASE("Bvh gives exactly the brute-force watertight result (same triangle, same t)", "[bvh]") {
+  TriangleMesh scene = Scene();
+  CheckExactAgainstBruteForce(scene, Eigen::Vector3d(0, 0, 15), 30.0, 21);
+  // Far from the origin (large coordinates: the float pre-test's error bound grows with them).
+  for (auto& v : scene.vertices) v += Eigen::Vector3d(2.5e5, -1.25e5, 4e4);
+  CheckExactAgainstBruteForce(scene, Eigen::Vector3d(2.5e5, -1.25e5, 4e4 + 15), 30.0, 22);
+  // Tiny (micrometre-scale) geometry.
+  TriangleMesh tiny = Scene();
+  for (auto& v : tiny.vertices) v *= 1e-6;
+  CheckExactAgainstBruteForce(tiny, Eigen::Vector3d(0, 0, 15e-6), 30e-6, 23);
+}
