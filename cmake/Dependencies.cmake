@@ -16,7 +16,7 @@ find_package(spdlog REQUIRED)
 gs360_note("spdlog" "${spdlog_VERSION}")
 find_package(SQLite3 REQUIRED)
 gs360_note("SQLite" "${SQLite3_VERSION}")
-find_package(OpenCV 4 REQUIRED COMPONENTS core imgproc imgcodecs calib3d videoio)
+find_package(OpenCV 4 REQUIRED COMPONENTS core imgproc imgcodecs calib3d videoio dnn)
 gs360_note("OpenCV" "${OpenCV_VERSION}")
 find_package(assimp REQUIRED)
 gs360_note("assimp" "${assimp_VERSION}")
@@ -24,6 +24,15 @@ find_package(nlohmann_json 3 REQUIRED)
 gs360_note("nlohmann-json" "${nlohmann_json_VERSION}")
 find_package(CLI11 REQUIRED)
 gs360_note("CLI11" "${CLI11_VERSION}")
+
+# FFTW3 (double): the DST-I behind the Poisson solver (recon/).
+pkg_check_modules(FFTW3 REQUIRED IMPORTED_TARGET fftw3)
+gs360_note("FFTW3" "${FFTW3_VERSION}")
+# ONNX export (calib/): Debian's libonnx-dev, whose targets carry ONNX_ML=1 and
+# ONNX_NAMESPACE=onnx and pull in protobuf.
+find_package(Protobuf REQUIRED)
+find_package(ONNX REQUIRED)
+gs360_note("ONNX" "libonnx (protobuf ${Protobuf_VERSION})")
 
 pkg_check_modules(SERIALPORT IMPORTED_TARGET libserialport)
 if(SERIALPORT_FOUND)

@@ -1,0 +1,151 @@
+#include "recon/features.h"
+
+#include <algorithm>
+#include <cmath>
+#include <stdexcept>
+#include <string>
+
+#include <opencv2/imgproc.hpp>
+
+namespace gs360 {
+namespace {
+
+[[noreturn]] void Bad(const std::string& field, double value, const std::string& rule) {
+  throw std::invalid_argument(field + " must be " + rule + ", got " + std::to_string(value));
+}
+
+}  // namespace
+
+void DifferenceOptions::Check() const {
+  if (!(floor_dn > 0.0 && std::isfinite(floor_dn)))
+    Bad("DifferenceOptions.floor_dn", floor_dn, "> 0");
+  if (!(gain_min_reference_dn >= 0.0 && gain_min_reference_dn < 255.0)) {
+    Bad("DifferenceOptions.gain_min_reference_dn", gain_min_reference_dn, "in [0, 255)");
+  }
+  if (gain_stride < 1 || gain_stride > 64) {
+    Bad("DifferenceOptions.gain_stride", gain_stride, "in [1, 64]");
+  }
+}
+
+void ContactDetectionOptions::Check() const {
+  if (!(blur_sigma_px >= 0.0 && blur_sigma_px <= 20.0)) {
+    Bad("ContactDetectionOptions.blur_sigma_px", blur_sigma_px, "in [0, 20]");
+  }
+  if (!(threshold > 0.0 && std::isfinite(threshold))) {
+    Bad("ContactDetectionOptions.threshold", threshold, "> 0");
+  }
+  if (min_area_px < 1) Bad("ContactDetectionOptions.min_area_px", min_area_px, ">= 1");
+  if (!(grow_fraction >= 0.0 && grow_fraction <= 5.0)) {
+    Bad("ContactDetectionOptions.grow_fraction", grow_fraction, "in [0, 5]");
+  }
+  if (grow_px < 0) Bad("ContactDetectionOptions.grow_px", grow_px, ">= 0");
+  if (max_regions < 1) Bad("ContactDetectionOptions.max_regions", max_regions, ">= 1");
+}
+
+cv::Mat NormalizedDifference(const cv::Mat& frame, const cv::Mat& reference, const cv::Mat& valid,
+                             const DifferenceOptions& options, cv::Vec3d* gain_out) {
+  options.Check();
+  if (frame.type() != CV_8UC3 || reference.type() != CV_8UC3 || frame.size() != reference.size()) {
+    throw std::invalid_argument(
+        "NormalizedDifference: frame and reference must be CV_8UC3 images of one size (got " +
+        std::to_string(frame.cols) + "x" + std::to_string(frame.rows) + " type " +
+        std::to_string(frame.type()) + " and " + std::to_string(reference.cols) + "x" +
+        std::to_string(reference.rows) + " type " + std::to_string(reference.type()) + ")");
+  }
+  if (!valid.empty() && (valid.type() != CV_8U || valid.size() != frame.size())) {
+    throw std::invalid_argument("NormalizedDifference: valid mask must be CV_8U of the image size");
+  }
+  cv::Vec3d gain(1.0, 1.0, 1.0);
+  if (options.compensate_gain) {
+    std::vector<float> ratios[3];
+    for (int v = 0; v < frame.rows; v += options.gain_stride) {
+      const auto* f = frame.ptr<cv::Vec3b>(v);
+      const auto* r = reference.ptr<cv::Vec3b>(v);
+      const auto* m = valid.empty() ? nullptr : valid.ptr<std::uint8_t>(v);
+      for (int u = 0; u < frame.cols; u += options.gain_stride) {
+        if (m != nullptr && m[u] == 0) continue;
+        for (int c = 0; c < 3; ++c) {
+          if (r[u][c] >= options.gain_min_reference_dn) {
+            ratios[c].push_back(static_cast<float>(f[u][c]) / static_cast<float>(r[u][c]));
+          }
+        }
+      }
+    }
+    for (int c = 0; c < 3; ++c) {
+      // Too few bright pixels in a channel (e.g. a sensor lit by one colour): keep g = 1.
+      if (ratios[c].size() < 64) continue;
+      auto mid = ratios[c].begin() + static_cast<std::ptrdiff_t>(ratios[c].size() / 2);
+      std::nth_element(ratios[c].begin(), mid, ratios[c].end());
+      gain[c] = *mid;
+    }
+  }
+  if (gain_out != nullptr) *gain_out = gain;
+  cv::Mat out(frame.size(), CV_32FC3, cv::Scalar::all(0));
+  const float floor = static_cast<float>(options.floor_dn);
+  const float g[3] = {static_cast<float>(gain[0]), static_cast<float>(gain[1]),
+                      static_cast<float>(gain[2])};
+  for (int v = 0; v < frame.rows; ++v) {
+    const auto* f = frame.ptr<cv::Vec3b>(v);
+    const auto* r = reference.ptr<cv::Vec3b>(v);
+    const auto* m = valid.empty() ? nullptr : valid.ptr<std::uint8_t>(v);
+    auto* o = out.ptr<cv::Vec3f>(v);
+    for (int u = 0; u < frame.cols; ++u) {
+      if (m != nullptr && m[u] == 0) continue;
+      for (int c = 0; c < 3; ++c) {
+        const float ref = g[c] * static_cast<float>(r[u][c]);
+        o[u][c] = (static_cast<float>(f[u][c]) - ref) / (ref + floor);
+      }
+    }
+  }
+  return out;
+}
+
+std::vector<ContactRegion> DetectContactRegions(const cv::Mat& normalized_difference,
+                                                const ContactDetectionOptions& options) {
+  options.Check();
+  if (normalized_difference.type() != CV_32FC3) {
+    throw std::invalid_argument("DetectContactRegions: expected a CV_32FC3 normalised difference");
+  }
+  cv::Mat sq;
+  cv::multiply(normalized_difference, normalized_difference, sq);
+  cv::Mat magnitude(normalized_difference.size(), CV_32F);
+  for (int v = 0; v < sq.rows; ++v) {
+    const auto* s = sq.ptr<cv::Vec3f>(v);
+    auto* m = magnitude.ptr<float>(v);
+    for (int u = 0; u < sq.cols; ++u) m[u] = std::sqrt(s[u][0] + s[u][1] + s[u][2]);
+  }
+  if (options.blur_sigma_px > 0.0) {
+    cv::GaussianBlur(magnitude, magnitude, cv::Size(), options.blur_sigma_px);
+  }
+  cv::Mat above = magnitude > static_cast<float>(options.threshold);
+  cv::Mat labels, stats, centroids;
+  const int n = cv::connectedComponentsWithStats(above, labels, stats, centroids, 8, CV_32S);
+  std::vector<ContactRegion> regions;
+  for (int label = 1; label < n; ++label) {
+    const int area = stats.at<int>(label, cv::CC_STAT_AREA);
+    if (area < options.min_area_px) continue;
+    ContactRegion region;
+    region.area_px = area;
+    region.blob =
+        cv::Rect(stats.at<int>(label, cv::CC_STAT_LEFT), stats.at<int>(label, cv::CC_STAT_TOP),
+                 stats.at<int>(label, cv::CC_STAT_WIDTH), stats.at<int>(label, cv::CC_STAT_HEIGHT));
+    double peak = 0.0;
+    cv::minMaxLoc(magnitude(region.blob), nullptr, &peak, nullptr, nullptr,
+                  labels(region.blob) == label);
+    region.peak = peak;
+    const int gx =
+        options.grow_px + static_cast<int>(std::ceil(options.grow_fraction * region.blob.width));
+    const int gy =
+        options.grow_px + static_cast<int>(std::ceil(options.grow_fraction * region.blob.height));
+    cv::Rect grown(region.blob.x - gx, region.blob.y - gy, region.blob.width + 2 * gx,
+                   region.blob.height + 2 * gy);
+    region.roi = grown & cv::Rect(0, 0, magnitude.cols, magnitude.rows);
+    regions.push_back(region);
+  }
+  std::sort(regions.begin(), regions.end(),
+            [](const ContactRegion& a, const ContactRegion& b) { return a.area_px > b.area_px; });
+  if (static_cast<int>(regions.size()) > options.max_regions) regions.resize(options.max_regions);
+  return regions;
+}
+
+}  // namespace gs360

@@ -1,0 +1,59 @@
+#pragma once
+// What the model sees of a tactile frame: the normalised colour difference against a no-contact
+// reference frame, and the regions where something touches the gel.
+//
+// Normalised difference, per pixel and channel c (B, G, R as stored by OpenCV):
+//   f_c = (I_c - g_c R_c) / (g_c R_c + floor_dn)
+// with I the frame, R the reference (both 8-bit), and g_c a per-channel gain that absorbs the
+// slow LED drift between the two frames: the median of I_c / R_c over valid pixels whose
+// reference is bright enough (contacts cover a small part of the image, so the median is the
+// background's ratio). The ratio form also cancels vignetting and the LEDs' fall-off with
+// distance, which differ across the image by 10x; floor_dn keeps dark pixels (the tip in red and
+// green) from dividing noise by nothing.
+//
+// The MLP's input for pixel (u, v) is (u, v, f_R, f_G, f_B): kFeatureCount = 5, in that order.
+
+#include <opencv2/core/mat.hpp>
+#include <vector>
+
+namespace gs360 {
+
+constexpr int kFeatureCount = 5;  // u, v, f_R, f_G, f_B
+
+struct DifferenceOptions {
+  double floor_dn = 30.0;               // added to the denominator (DN, > 0)
+  bool compensate_gain = true;          // estimate g_c from the frame; otherwise g = 1
+  double gain_min_reference_dn = 40.0;  // pixels used for the gain: reference above this
+  int gain_stride = 4;                  // sample every n-th pixel in u and v for the median
+  // Throws std::invalid_argument naming the field and its value.
+  void Check() const;
+};
+
+// frame, reference: CV_8UC3 of one size; valid: empty or CV_8U of that size (non-zero = use).
+// Returns CV_32FC3 (B, G, R order like the input); 0 outside `valid`. Throws
+// std::invalid_argument for mismatched inputs.
+cv::Mat NormalizedDifference(const cv::Mat& frame, const cv::Mat& reference, const cv::Mat& valid,
+                             const DifferenceOptions& options = {}, cv::Vec3d* gain_out = nullptr);
+
+struct ContactDetectionOptions {
+  double blur_sigma_px = 1.5;   // smoothing of the difference magnitude
+  double threshold = 0.06;      // |f| (norm over channels) above this is a change
+  int min_area_px = 12;         // smaller blobs are noise
+  double grow_fraction = 0.35;  // ROI = blob box grown by this fraction of its size per side
+  int grow_px = 6;              // plus this many pixels per side
+  int max_regions = 16;         // largest first
+  void Check() const;
+};
+
+struct ContactRegion {
+  cv::Rect blob;  // the changed pixels' bounding box
+  cv::Rect roi;   // the region to reconstruct (blob grown, clipped to the image)
+  int area_px = 0;
+  double peak = 0.0;  // largest smoothed |f|
+};
+
+// Regions of change in a normalised difference (CV_32FC3), largest first; empty = no contact.
+std::vector<ContactRegion> DetectContactRegions(const cv::Mat& normalized_difference,
+                                                const ContactDetectionOptions& options = {});
+
+}  // namespace gs360

@@ -1,0 +1,295 @@
+#include "recon/reconstructor.h"
+
+#include <chrono>
+#include <cmath>
+#include <functional>
+#include <limits>
+#include <map>
+#include <set>
+#include <stdexcept>
+
+#include <nlohmann/json.hpp>
+
+namespace gs360 {
+namespace {
+
+using Json = nlohmann::json;
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+double Seconds(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+// Strict reader of one JSON object: every key must be claimed by a field.
+class ObjectReader {
+ public:
+  ObjectReader(const Json& json, std::string where) : json_(json), where_(std::move(where)) {
+    if (!json_.is_object()) throw std::invalid_argument(where_ + ": expected an object");
+  }
+  template <typename T>
+  void Read(const char* key, T* value) {
+    seen_.insert(key);
+    auto it = json_.find(key);
+    if (it == json_.end()) return;
+    try {
+      *value = it->get<T>();
+    } catch (const Json::exception&) {
+      throw std::invalid_argument(where_ + "." + key + ": wrong type (" + it->dump() + ")");
+    }
+  }
+  const Json* Child(const char* key) {
+    seen_.insert(key);
+    auto it = json_.find(key);
+    return it == json_.end() ? nullptr : &*it;
+  }
+  const std::string& where() const { return where_; }
+  void Finish() const {
+    for (auto it = json_.begin(); it != json_.end(); ++it) {
+      if (!seen_.count(it.key())) {
+        throw std::invalid_argument(where_ + "." + it.key() + ": unknown field");
+      }
+    }
+  }
+
+ private:
+  const Json& json_;
+  std::string where_;
+  std::set<std::string> seen_;
+};
+
+}  // namespace
+
+void ReconstructionOptions::Check() const {
+  difference.Check();
+  detection.Check();
+  gradients.Check();
+  integration.Check();
+}
+
+Json ReconstructionOptionsToJson(const ReconstructionOptions& o) {
+  return Json{
+      {"difference",
+       {{"floor_dn", o.difference.floor_dn},
+        {"compensate_gain", o.difference.compensate_gain},
+        {"gain_min_reference_dn", o.difference.gain_min_reference_dn},
+        {"gain_stride", o.difference.gain_stride}}},
+      {"detection",
+       {{"blur_sigma_px", o.detection.blur_sigma_px},
+        {"threshold", o.detection.threshold},
+        {"min_area_px", o.detection.min_area_px},
+        {"grow_fraction", o.detection.grow_fraction},
+        {"grow_px", o.detection.grow_px},
+        {"max_regions", o.detection.max_regions}}},
+      {"gradients", {{"min_grazing_deg", o.gradients.min_grazing_deg}}},
+      {"integration",
+       {{"method", std::string(ToString(o.integration.method))},
+        {"iterations", o.integration.iterations},
+        {"sharpness", o.integration.sharpness},
+        {"scale", o.integration.scale},
+        {"min_weight", o.integration.min_weight},
+        {"tolerance", o.integration.tolerance}}},
+  };
+}
+
+ReconstructionOptions ReconstructionOptionsFromJson(const Json& json, const std::string& where) {
+  ReconstructionOptions o;
+  ObjectReader root(json, where);
+  if (const Json* j = root.Child("difference")) {
+    ObjectReader r(*j, where + ".difference");
+    r.Read("floor_dn", &o.difference.floor_dn);
+    r.Read("compensate_gain", &o.difference.compensate_gain);
+    r.Read("gain_min_reference_dn", &o.difference.gain_min_reference_dn);
+    r.Read("gain_stride", &o.difference.gain_stride);
+    r.Finish();
+  }
+  if (const Json* j = root.Child("detection")) {
+    ObjectReader r(*j, where + ".detection");
+    r.Read("blur_sigma_px", &o.detection.blur_sigma_px);
+    r.Read("threshold", &o.detection.threshold);
+    r.Read("min_area_px", &o.detection.min_area_px);
+    r.Read("grow_fraction", &o.detection.grow_fraction);
+    r.Read("grow_px", &o.detection.grow_px);
+    r.Read("max_regions", &o.detection.max_regions);
+    r.Finish();
+  }
+  if (const Json* j = root.Child("gradients")) {
+    ObjectReader r(*j, where + ".gradients");
+    r.Read("min_grazing_deg", &o.gradients.min_grazing_deg);
+    r.Finish();
+  }
+  if (const Json* j = root.Child("integration")) {
+    ObjectReader r(*j, where + ".integration");
+    std::string method(ToString(o.integration.method));
+    r.Read("method", &method);
+    try {
+      o.integration.method = ParseIntegrationMethod(method);
+    } catch (const std::exception&) {
+      throw std::invalid_argument(where + ".integration.method: unknown method \"" + method +
+                                  "\" (poisson or discontinuity)");
+    }
+    r.Read("iterations", &o.integration.iterations);
+    r.Read("sharpness", &o.integration.sharpness);
+    r.Read("scale", &o.integration.scale);
+    r.Read("min_weight", &o.integration.min_weight);
+    r.Read("tolerance", &o.integration.tolerance);
+    r.Finish();
+  }
+  root.Finish();
+  try {
+    o.Check();
+  } catch (const std::invalid_argument& e) {
+    throw std::invalid_argument(where + ": " + e.what());
+  }
+  return o;
+}
+
+Reconstructor::Reconstructor(std::shared_ptr<const SurfaceMap> map, const FisheyeCamera& camera,
+                             Mlp mlp, cv::Mat reference, const ReconstructionOptions& options)
+    : map_(std::move(map)),
+      camera_(camera),
+      mlp_(std::move(mlp)),
+      reference_(std::move(reference)),
+      options_(options) {
+  options_.Check();
+  if (!map_) throw std::invalid_argument("Reconstructor: no surface map");
+  if (map_->width() != camera_.width() || map_->height() != camera_.height()) {
+    throw std::invalid_argument("Reconstructor: surface map " + std::to_string(map_->width()) +
+                                "x" + std::to_string(map_->height()) + " does not match camera " +
+                                std::to_string(camera_.width()) + "x" +
+                                std::to_string(camera_.height()));
+  }
+  if (reference_.type() != CV_8UC3 || reference_.cols != map_->width() ||
+      reference_.rows != map_->height()) {
+    throw std::invalid_argument("Reconstructor: the reference frame must be CV_8UC3 " +
+                                std::to_string(map_->width()) + "x" +
+                                std::to_string(map_->height()));
+  }
+  if (mlp_.input_size() != kFeatureCount || mlp_.output_size() != 2) {
+    throw std::invalid_argument("Reconstructor: the MLP maps " + std::to_string(mlp_.input_size()) +
+                                " -> " + std::to_string(mlp_.output_size()) + ", expected " +
+                                std::to_string(kFeatureCount) + " -> 2");
+  }
+  visible_ = map_->VisibleMask();
+}
+
+cv::Mat Reconstructor::Difference(const cv::Mat& frame, const cv::Mat& reference,
+                                  cv::Vec3d* gain) const {
+  return NormalizedDifference(frame, reference, visible_, options_.difference, gain);
+}
+
+cv::Mat Reconstructor::PredictSlopes(const cv::Mat& diff, const cv::Rect& roi) const {
+  cv::Mat slopes(roi.size(), CV_32FC2, cv::Scalar::all(0));
+  std::vector<cv::Point> pixels;
+  pixels.reserve(roi.area());
+  for (int v = roi.y; v < roi.y + roi.height; ++v) {
+    for (int u = roi.x; u < roi.x + roi.width; ++u) {
+      if (map_->visible(u, v)) pixels.emplace_back(u, v);
+    }
+  }
+  if (pixels.empty()) return slopes;
+  Eigen::MatrixXf x(kFeatureCount, static_cast<Eigen::Index>(pixels.size()));
+  for (std::size_t i = 0; i < pixels.size(); ++i) {
+    const cv::Vec3f f = diff.at<cv::Vec3f>(pixels[i]);
+    const auto c = static_cast<Eigen::Index>(i);
+    x(0, c) = static_cast<float>(pixels[i].x);
+    x(1, c) = static_cast<float>(pixels[i].y);
+    x(2, c) = f[2];  // R
+    x(3, c) = f[1];  // G
+    x(4, c) = f[0];  // B
+  }
+  const Eigen::MatrixXf y = mlp_.Forward(x);
+  for (std::size_t i = 0; i < pixels.size(); ++i) {
+    const auto c = static_cast<Eigen::Index>(i);
+    slopes.at<cv::Vec2f>(pixels[i].y - roi.y, pixels[i].x - roi.x) = cv::Vec2f(y(0, c), y(1, c));
+  }
+  return slopes;
+}
+
+RegionReconstruction Reconstructor::IntegrateSlopes(const cv::Mat& slopes,
+                                                    const ContactRegion& region,
+                                                    const IntegrationOptions& integration) const {
+  const cv::Rect& roi = region.roi;
+  if (slopes.type() != CV_32FC2 || slopes.size() != roi.size()) {
+    throw std::invalid_argument("IntegrateSlopes: slopes must be CV_32FC2 of the roi's size");
+  }
+  RegionReconstruction out;
+  out.region = region;
+  out.slopes = slopes;
+  out.normals = cv::Mat(roi.size(), CV_64FC3, cv::Scalar::all(kNaN));
+  for (int y = 0; y < roi.height; ++y) {
+    for (int x = 0; x < roi.width; ++x) {
+      const int u = roi.x + x, v = roi.y + y;
+      if (!map_->visible(u, v)) continue;
+      const cv::Vec2f g = slopes.at<cv::Vec2f>(y, x);
+      const Eigen::Vector3d n = map_->NormalFromSlopes(u, v, g[0], g[1]);
+      out.normals.at<cv::Vec3d>(y, x) = cv::Vec3d(n.x(), n.y(), n.z());
+    }
+  }
+  const auto t0 = std::chrono::steady_clock::now();
+  const LogDepthGradients grads =
+      ComputeLogDepthGradients(*map_, roi, out.normals, options_.gradients);
+  const IntegrationResult solved = IntegrateLogDepth(*map_, grads, integration);
+  out.integration_seconds = Seconds(t0);
+  out.rho = solved.rho;
+  out.indentation = cv::Mat(roi.size(), CV_64F, cv::Scalar::all(kNaN));
+  for (int y = 0; y < roi.height; ++y) {
+    for (int x = 0; x < roi.width; ++x) {
+      const int u = roi.x + x, v = roi.y + y;
+      const double rho = out.rho.at<double>(y, x);
+      if (!map_->visible(u, v) || !std::isfinite(rho)) continue;
+      const double cosine = std::abs(map_->ray(u, v).dot(map_->normal0(u, v)));
+      const double depth = (map_->rho0(u, v) - rho) * cosine;
+      out.indentation.at<double>(y, x) = depth;
+      out.peak_indentation_mm = std::max(out.peak_indentation_mm, depth);
+    }
+  }
+  return out;
+}
+
+RegionReconstruction Reconstructor::ReconstructRegion(const cv::Mat& diff,
+                                                      const ContactRegion& region,
+                                                      const IntegrationOptions& integration) const {
+  const auto t0 = std::chrono::steady_clock::now();
+  cv::Mat slopes = PredictSlopes(diff, region.roi);
+  const double mlp_seconds = Seconds(t0);
+  RegionReconstruction out = IntegrateSlopes(slopes, region, integration);
+  out.mlp_seconds = mlp_seconds;
+  return out;
+}
+
+FrameReconstruction Reconstructor::Reconstruct(const cv::Mat& frame) const {
+  return Reconstruct(frame, reference_);
+}
+
+FrameReconstruction Reconstructor::Reconstruct(const cv::Mat& frame,
+                                               const cv::Mat& reference) const {
+  const auto t0 = std::chrono::steady_clock::now();
+  FrameReconstruction out;
+  const cv::Mat diff = Difference(frame, reference, &out.gain);
+  for (const ContactRegion& region : DetectContactRegions(diff, options_.detection)) {
+    if (region.roi.width < 3 || region.roi.height < 3) continue;
+    out.regions.push_back(ReconstructRegion(diff, region, options_.integration));
+  }
+  out.seconds = Seconds(t0);
+  return out;
+}
+
+std::vector<Eigen::Vector3f> Reconstructor::PointCloud(const FrameReconstruction& reconstruction,
+                                                       double min_indentation_mm) const {
+  const Rigid3d sensor_from_cam = map_->cam_from_sensor().Inverse();
+  std::vector<Eigen::Vector3f> points;
+  for (const RegionReconstruction& r : reconstruction.regions) {
+    const cv::Rect& roi = r.region.roi;
+    for (int y = 0; y < roi.height; ++y) {
+      for (int x = 0; x < roi.width; ++x) {
+        const double depth = r.indentation.at<double>(y, x);
+        if (!(depth > min_indentation_mm)) continue;
+        const Eigen::Vector3d x_cam = r.rho.at<double>(y, x) * map_->ray(roi.x + x, roi.y + y);
+        points.push_back((sensor_from_cam * x_cam).cast<float>());
+      }
+    }
+  }
+  return points;
+}
+
+}  // namespace gs360

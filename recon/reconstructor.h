@@ -1,0 +1,110 @@
+#pragma once
+// Run-time reconstruction: a tactile frame in, the shape of what touches the gel out.
+//
+//   frame -> normalised difference against the reference (recon/features.h)
+//         -> contact regions (blobs of change, grown into rectangular ROIs)
+//         -> per visible ROI pixel, the MLP's tangent-frame slopes (gx, gy)
+//         -> normals n = normalise(n0 + gx t1 + gy t2) (recon/surface_map.h)
+//         -> gradients of psi = log(rho / rho0) -> integration with psi = 0 on the ROI border
+//            (recon/integration.h) -> rho = rho0 e^psi
+//         -> indentation and a point cloud.
+// Frames without contact cost one difference and a threshold.
+//
+// Outputs (per region, roi-sized, row = v): rho (mm along the pixel's unit ray from the camera
+// centre), indentation = (rho0 - rho) |d.n0| (mm, + into the gel: the depth of the imprint
+// measured along the undeformed surface's normal, approximately), normals in the camera frame.
+// Points are in the SENSOR frame (cam_from_sensor of the model), mm.
+//
+// Thread safety: Reconstruct is const and may run on several threads at once.
+
+#include <Eigen/Core>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json_fwd.hpp>
+#include <opencv2/core/mat.hpp>
+
+#include "geometry/fisheye.h"
+#include "recon/features.h"
+#include "recon/integration.h"
+#include "recon/mlp.h"
+#include "recon/surface_map.h"
+
+namespace gs360 {
+
+struct ReconstructionOptions {
+  DifferenceOptions difference;
+  ContactDetectionOptions detection;
+  GradientOptions gradients;
+  IntegrationOptions integration;
+  // Throws std::invalid_argument naming the field (delegates to the nested Check()s).
+  void Check() const;
+};
+nlohmann::json ReconstructionOptionsToJson(const ReconstructionOptions& options);
+// Strict: unknown keys or wrong types throw std::invalid_argument naming `where` and the field.
+ReconstructionOptions ReconstructionOptionsFromJson(const nlohmann::json& json,
+                                                    const std::string& where);
+
+struct RegionReconstruction {
+  ContactRegion region;
+  cv::Mat slopes;       // CV_32FC2 (gx, gy); 0 where not visible
+  cv::Mat normals;      // CV_64FC3 camera frame; NaN where not visible
+  cv::Mat rho;          // CV_64F mm; NaN where not visible
+  cv::Mat indentation;  // CV_64F mm (+ into the gel); NaN where not visible
+  double peak_indentation_mm = 0.0;
+  double mlp_seconds = 0.0;
+  double integration_seconds = 0.0;
+};
+
+struct FrameReconstruction {
+  std::vector<RegionReconstruction> regions;  // empty = no contact
+  cv::Vec3d gain{1.0, 1.0, 1.0};              // LED drift gain found against the reference
+  double seconds = 0.0;
+};
+
+class Reconstructor {
+ public:
+  // `reference`: CV_8UC3 of the map's size. Throws std::invalid_argument for mismatched sizes,
+  // an MLP that is not kFeatureCount -> 2, or invalid options.
+  Reconstructor(std::shared_ptr<const SurfaceMap> map, const FisheyeCamera& camera, Mlp mlp,
+                cv::Mat reference, const ReconstructionOptions& options);
+
+  const SurfaceMap& map() const { return *map_; }
+  const FisheyeCamera& camera() const { return camera_; }
+  const Mlp& mlp() const { return mlp_; }
+  const cv::Mat& reference() const { return reference_; }
+  const ReconstructionOptions& options() const { return options_; }
+
+  // Against the model's reference frame, or a given (newer) one.
+  FrameReconstruction Reconstruct(const cv::Mat& frame) const;
+  FrameReconstruction Reconstruct(const cv::Mat& frame, const cv::Mat& reference) const;
+
+  // The pieces, for validation and tools:
+  // CV_32FC3 normalised difference, masked to visible pixels.
+  cv::Mat Difference(const cv::Mat& frame, const cv::Mat& reference,
+                     cv::Vec3d* gain = nullptr) const;
+  // MLP slopes (CV_32FC2) for the visible pixels of roi.
+  cv::Mat PredictSlopes(const cv::Mat& normalized_difference, const cv::Rect& roi) const;
+  // Slopes -> normals -> integration on region.roi with the given integration options.
+  RegionReconstruction ReconstructRegion(const cv::Mat& normalized_difference,
+                                         const ContactRegion& region,
+                                         const IntegrationOptions& integration) const;
+  // Given slopes for region.roi (CV_32FC2): normals, integration, indentation.
+  RegionReconstruction IntegrateSlopes(const cv::Mat& slopes, const ContactRegion& region,
+                                       const IntegrationOptions& integration) const;
+
+  // Points (sensor frame, mm) of the pixels whose indentation exceeds min_indentation_mm.
+  std::vector<Eigen::Vector3f> PointCloud(const FrameReconstruction& reconstruction,
+                                          double min_indentation_mm = 0.02) const;
+
+ private:
+  std::shared_ptr<const SurfaceMap> map_;
+  FisheyeCamera camera_;
+  Mlp mlp_;
+  cv::Mat reference_;
+  cv::Mat visible_;
+  ReconstructionOptions options_;
+};
+
+}  // namespace gs360

@@ -1,0 +1,90 @@
+#include <catch2/catch.hpp>
+
+#include <opencv2/imgproc.hpp>
+
+#include "recon/features.h"
+
+using gs360::ContactDetectionOptions;
+using gs360::DetectContactRegions;
+using gs360::DifferenceOptions;
+using gs360::NormalizedDifference;
+
+namespace {
+cv::Mat Reference() {
+  cv::Mat ref(120, 160, CV_8UC3);
+  for (int v = 0; v < ref.rows; ++v) {
+    for (int u = 0; u < ref.cols; ++u) {
+      ref.at<cv::Vec3b>(v, u) = cv::Vec3b(static_cast<std::uint8_t>(60 + u / 2),
+                                          static_cast<std::uint8_t>(90 + v / 2), 150);
+    }
+  }
+  return ref;
+}
+}  // namespace
+
+TEST_CASE("normalised difference cancels a global LED gain and keeps a local change",
+          "[recon][features]") {
+  const cv::Mat ref = Reference();
+  cv::Mat frame;
+  ref.convertTo(frame, CV_8UC3, 1.04);  // all LEDs 4% brighter
+  cv::circle(frame, cv::Point(80, 60), 6, cv::Scalar(40, 200, 250), cv::FILLED);
+  cv::Vec3d gain;
+  const cv::Mat f = NormalizedDifference(frame, ref, cv::Mat(), DifferenceOptions{}, &gain);
+  CHECK(gain[0] == Approx(1.04).margin(0.01));
+  CHECK(gain[2] == Approx(1.04).margin(0.01));
+  // Far from the change: ~0 (8-bit rounding only).
+  const cv::Vec3f far = f.at<cv::Vec3f>(10, 10);
+  for (int c = 0; c < 3; ++c) CHECK(std::abs(far[c]) < 0.01f);
+  // At the change: blue darker, green brighter.
+  const cv::Vec3f at = f.at<cv::Vec3f>(60, 80);
+  CHECK(at[0] < -0.3f);
+  CHECK(at[1] > 0.4f);
+  // Without compensation the gain shows everywhere.
+  DifferenceOptions raw;
+  raw.compensate_gain = false;
+  const cv::Mat g = NormalizedDifference(frame, ref, cv::Mat(), raw);
+  CHECK(g.at<cv::Vec3f>(10, 10)[2] > 0.025f);
+}
+
+TEST_CASE("normalised difference rejects mismatched inputs and masks pixels", "[recon][features]") {
+  const cv::Mat ref = Reference();
+  CHECK_THROWS_AS(NormalizedDifference(ref(cv::Rect(0, 0, 50, 50)), ref, cv::Mat()),
+                  std::invalid_argument);
+  cv::Mat grey;
+  cv::cvtColor(ref, grey, cv::COLOR_BGR2GRAY);
+  CHECK_THROWS_AS(NormalizedDifference(grey, ref, cv::Mat()), std::invalid_argument);
+  cv::Mat frame = ref.clone();
+  frame.setTo(cv::Scalar(255, 255, 255));
+  cv::Mat mask(ref.size(), CV_8U, cv::Scalar(0));
+  mask(cv::Rect(0, 0, 20, 20)).setTo(255);
+  DifferenceOptions o;
+  o.compensate_gain = false;
+  const cv::Mat f = NormalizedDifference(frame, ref, mask, o);
+  CHECK(f.at<cv::Vec3f>(5, 5)[0] > 0.5f);
+  CHECK(f.at<cv::Vec3f>(100, 100)[0] == 0.0f);
+  DifferenceOptions bad;
+  bad.floor_dn = 0.0;
+  CHECK_THROWS_WITH(NormalizedDifference(frame, ref, mask, bad), Catch::Contains("floor_dn"));
+}
+
+TEST_CASE("contact regions: blobs of change, largest first, grown rois", "[recon][features]") {
+  cv::Mat diff(200, 300, CV_32FC3, cv::Scalar::all(0));
+  cv::circle(diff, cv::Point(80, 100), 15, cv::Scalar(0.3, -0.2, 0.1), cv::FILLED);
+  cv::circle(diff, cv::Point(230, 60), 6, cv::Scalar(0.0, 0.4, 0.0), cv::FILLED);
+  diff.at<cv::Vec3f>(180, 280) = cv::Vec3f(0.5f, 0.5f, 0.5f);  // one hot pixel: noise
+  const auto regions = DetectContactRegions(diff);
+  REQUIRE(regions.size() == 2);
+  CHECK(regions[0].blob.contains(cv::Point(80, 100)));
+  CHECK(regions[1].blob.contains(cv::Point(230, 60)));
+  CHECK(regions[0].area_px > regions[1].area_px);
+  // The roi holds the blob with margin on every side.
+  const cv::Rect& roi = regions[0].roi;
+  const cv::Rect& blob = regions[0].blob;
+  CHECK(roi.x < blob.x - 6);
+  CHECK(roi.br().x > blob.br().x + 6);
+  CHECK((roi & blob) == blob);
+  CHECK(DetectContactRegions(cv::Mat(50, 50, CV_32FC3, cv::Scalar::all(0))).empty());
+  ContactDetectionOptions bad;
+  bad.threshold = -1;
+  CHECK_THROWS_AS(DetectContactRegions(diff, bad), std::invalid_argument);
+}

@@ -1,0 +1,93 @@
+#include <catch2/catch.hpp>
+
+#include <filesystem>
+#include <fstream>
+
+#include <opencv2/core.hpp>
+
+#include "geometry/shapes.h"
+#include "recon/model_bundle.h"
+
+using namespace gs360;
+
+namespace {
+ModelBundle SmallBundle() {
+  ModelBundle b;
+  b.name = "test-model";
+  b.version = "7";
+  b.gs360_version = "0.1.0";
+  b.created_at = 1.7e9;
+  b.sensor = "cylinder";
+  b.intrinsics = FisheyeIntrinsics::Default160(160, 120);
+  b.cam_from_sensor =
+      Rigid3d::FromAxisAngle(Eigen::Vector3d(1, 2, 3), 0.01, Eigen::Vector3d(0.1, -0.2, 1.5));
+  SensorShapeOptions shape;
+  shape.tessellation.segments = 32;
+  b.gel_mesh = MakeSensorMesh(shape);
+  b.fin_mesh = MakeFins(FinOptions{}, *MakeProfile(shape));
+  b.reference = cv::Mat(120, 160, CV_8UC3, cv::Scalar(70, 110, 150));
+  b.mlp = Mlp({5, 8, 2}, Activation::kTanh, 3);
+  b.reconstruction.integration.method = IntegrationMethod::kPoisson;
+  b.metrics = {{"mean_mm", 0.021}};
+  return b;
+}
+}  // namespace
+
+TEST_CASE("model bundle: round trip keeps everything reconstruction needs", "[recon][bundle]") {
+  const ModelBundle b = SmallBundle();
+  const auto bytes = SerializeModelBundle(b);
+  const ModelBundle c = DeserializeModelBundle(bytes, "memory");
+  CHECK(c.name == b.name);
+  CHECK(c.version == b.version);
+  CHECK(c.intrinsics.fx == b.intrinsics.fx);
+  CHECK(c.intrinsics.width == 160);
+  CHECK(RotationDifferenceRad(c.cam_from_sensor, b.cam_from_sensor) < 1e-15);
+  CHECK(TranslationDifferenceMm(c.cam_from_sensor, b.cam_from_sensor) < 1e-15);
+  CHECK(c.gel_mesh.NumTriangles() == b.gel_mesh.NumTriangles());
+  CHECK(c.gel_mesh.vertices[5] == b.gel_mesh.vertices[5]);
+  CHECK(c.fin_mesh.NumTriangles() == b.fin_mesh.NumTriangles());
+  CHECK(cv::countNonZero(c.reference.reshape(1) != b.reference.reshape(1)) == 0);
+  CHECK(c.reconstruction.integration.method == IntegrationMethod::kPoisson);
+  CHECK(c.metrics.at("mean_mm").get<double>() == 0.021);
+  const Eigen::MatrixXf x = Eigen::MatrixXf::Random(5, 7);
+  CHECK((c.mlp.Forward(x) - b.mlp.Forward(x)).cwiseAbs().maxCoeff() == 0.0f);
+  // Serialising again gives the same bytes (deterministic).
+  CHECK(SerializeModelBundle(c) == bytes);
+}
+
+TEST_CASE("model bundle: truncated, corrupt and newer files are refused by name",
+          "[recon][bundle]") {
+  const auto bytes = SerializeModelBundle(SmallBundle());
+  for (std::size_t cut :
+       {std::size_t{0}, std::size_t{7}, std::size_t{20}, bytes.size() / 2, bytes.size() - 1}) {
+    std::vector<std::uint8_t> t(bytes.begin(), bytes.begin() + static_cast<std::ptrdiff_t>(cut));
+    CHECK_THROWS_AS(DeserializeModelBundle(t, "cut.gs360model"), ModelBundleError);
+  }
+  std::vector<std::uint8_t> flipped = bytes;
+  flipped[bytes.size() / 3] ^= 0x10;
+  CHECK_THROWS_WITH(DeserializeModelBundle(flipped, "flip.gs360model"),
+                    Catch::Contains("flip.gs360model") && Catch::Contains("checksum"));
+  std::vector<std::uint8_t> newer = bytes;
+  newer[8] = 99;  // format version
+  CHECK_THROWS_WITH(DeserializeModelBundle(newer, "new.gs360model"), Catch::Contains("newer"));
+  const std::vector<std::uint8_t> junk(300, 'x');
+  CHECK_THROWS_WITH(DeserializeModelBundle(junk, "junk.bin"), Catch::Contains("not a gs360"));
+}
+
+TEST_CASE("model bundle: files are written atomically and read back, and build a reconstructor",
+          "[recon][bundle]") {
+  const auto dir = std::filesystem::temp_directory_path() / "gs360_bundle_test";
+  std::filesystem::create_directories(dir);
+  const auto path = dir / "m.gs360model";
+  const ModelBundle b = SmallBundle();
+  WriteModelBundle(path, b);
+  CHECK_FALSE(std::filesystem::exists(dir / "m.gs360model.tmp"));
+  const ModelBundle c = ReadModelBundle(path);
+  CHECK(c.name == "test-model");
+  const Reconstructor r = c.MakeReconstructor(1);
+  CHECK(r.map().stats().visible > 1000);
+  // The reference itself shows no contact.
+  CHECK(r.Reconstruct(c.reference).regions.empty());
+  CHECK_THROWS_WITH(ReadModelBundle(dir / "missing.gs360model"), Catch::Contains("missing"));
+  std::filesystem::remove_all(dir);
+}
