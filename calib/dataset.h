@@ -1,0 +1,68 @@
+#pragma once
+// Calibration stage 5, "dataset": training samples from the captured probes.
+//
+// For each probe whose rigid render (calib/render.h) has contact, the normalised difference of
+// its press frame against the reference frame nearest in time (recon/features.h) gives, per
+// pixel, the MLP's input (u, v, f_R, f_G, f_B) (recon/features.h kFeatureCount); the render gives
+// the target slopes (gx, gy). Samples: the probe's contact pixels (at most
+// max_contact_samples_per_probe, a seeded random subset: neighbouring pixels are nearly
+// redundant) plus non-contact pixels of the probe's ROI, about non_contact_fraction of all of
+// the probe's samples (target slopes 0: they teach the model where nothing touches).
+// Probes are split train / validation / test BY PROBE (a seeded shuffle), never by pixel.
+//
+// The matrices are column-major, one sample per column: x [kFeatureCount, n], y [2, n].
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <span>
+#include <vector>
+
+#include <opencv2/core/mat.hpp>
+
+#include "calib/render.h"
+
+namespace gs360 {
+
+enum class Split : std::uint8_t { kTrain = 0, kValidation = 1, kTest = 2 };
+
+struct DatasetOptions {
+  int max_contact_samples_per_probe = 250;  // >= 1
+  double non_contact_fraction = 0.25;       // [0, 0.9]
+  int min_contact_pixels = 8;        // probes with fewer rendered contact pixels are left out
+  double validation_fraction = 0.1;  // of the probes
+  double test_fraction = 0.1;        // of the probes (held out for the validate stage)
+  std::uint64_t seed = 1;
+  void Check() const;  // throws std::invalid_argument naming the field and value
+};
+
+struct Dataset {
+  Eigen::MatrixXf x;                  // [kFeatureCount, n]
+  Eigen::MatrixXf y;                  // [2, n]
+  std::vector<std::int32_t> probe;    // per sample: the probe's plan index
+  std::vector<std::uint8_t> contact;  // per sample: 1 = contact pixel
+  std::vector<std::int32_t> probes;   // plan indices of the probes used
+  std::vector<Split> probe_split;     // per entry of `probes`
+
+  // Columns of one split.
+  Eigen::MatrixXf X(Split s) const;
+  Eigen::MatrixXf Y(Split s) const;
+  std::vector<std::int32_t> ProbesIn(Split s) const;
+  std::size_t Count(Split s) const;
+
+  // Binary form (versioned, checksummed); Deserialize throws std::runtime_error naming the fault.
+  std::vector<std::uint8_t> Serialize() const;
+  static Dataset Deserialize(std::span<const std::uint8_t> bytes);
+};
+
+// Samples of one probe: `diff` is the full-image normalised difference (CV_32FC3, B G R),
+// `render` the probe's rigid render. Appends to `out` (x, y, probe, contact); returns the number
+// of samples added (0 when the render has fewer than min_contact_pixels). Deterministic for
+// (options.seed, plan_index).
+std::size_t AppendProbeSamples(const cv::Mat& diff, const ProbeRender& render, int plan_index,
+                               const DatasetOptions& options, Dataset* out);
+
+// Seeded split of plan indices (in the given order) into train / validation / test. Every split
+// gets at least one probe when there are >= 3 probes.
+std::vector<Split> SplitProbes(std::span<const std::int32_t> probes, const DatasetOptions& options);
+
+}  // namespace gs360

@@ -1,0 +1,245 @@
+#include "calib/intrinsics.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <sstream>
+#include <stdexcept>
+#include <string>
+
+#include <opencv2/calib3d.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "geometry/fisheye_cv.h"
+
+namespace gs360 {
+namespace {
+
+template <typename T>
+[[noreturn]] void ThrowField(const char* field, T value, const char* what) {
+  std::ostringstream s;
+  s << "IntrinsicsOptions." << field << " " << what << ", got " << value;
+  throw std::invalid_argument(s.str());
+}
+
+std::string Fixed(double v, int digits = 3) {
+  char buf[64];
+  std::snprintf(buf, sizeof(buf), "%.*f", digits, v);
+  return buf;
+}
+
+// Index of the image OpenCV's CHECK_COND complained about, or -1.
+int IllConditionedIndex(const std::string& message) {
+  const std::string key = "Ill-conditioned matrix for input array ";
+  const auto at = message.find(key);
+  if (at == std::string::npos) return -1;
+  int index = -1;
+  if (std::sscanf(message.c_str() + at + key.size(), "%d", &index) != 1) return -1;
+  return index;
+}
+
+}  // namespace
+
+void IntrinsicsOptions::Check() const {
+  if (board_cols < 2) ThrowField("board_cols", board_cols, "must be >= 2");
+  if (board_rows < 2) ThrowField("board_rows", board_rows, "must be >= 2");
+  if (!(square_mm > 0.0) || !std::isfinite(square_mm)) {
+    ThrowField("square_mm", square_mm, "must be finite and > 0");
+  }
+  if (min_images < 3) ThrowField("min_images", min_images, "must be >= 3");
+  if (!(max_rms_px > 0.0)) ThrowField("max_rms_px", max_rms_px, "must be > 0");
+  if (!(min_radial_coverage > 0.0 && min_radial_coverage <= 1.0)) {
+    ThrowField("min_radial_coverage", min_radial_coverage, "must be in (0, 1]");
+  }
+  if (subpix_window < 1) ThrowField("subpix_window", subpix_window, "must be >= 1");
+  if (max_iterations < 1) ThrowField("max_iterations", max_iterations, "must be >= 1");
+  if (!(epsilon > 0.0)) ThrowField("epsilon", epsilon, "must be > 0");
+}
+
+IntrinsicsResult CalibrateIntrinsics(std::span<const cv::Mat> images,
+                                     const FisheyeIntrinsics& nominal,
+                                     const IntrinsicsOptions& options) {
+  options.Check();
+  nominal.Check();
+  const cv::Size pattern(options.board_cols, options.board_rows);
+  const cv::Size image_size(nominal.width, nominal.height);
+
+  std::vector<cv::Point3d> board;
+  for (int r = 0; r < options.board_rows; ++r) {
+    for (int c = 0; c < options.board_cols; ++c) {
+      board.emplace_back(c * options.square_mm, r * options.square_mm, 0.0);
+    }
+  }
+
+  IntrinsicsResult result;
+  result.images.resize(images.size());
+  std::vector<std::vector<cv::Point2d>> detected(images.size());
+  std::vector<int> candidates;
+  for (std::size_t i = 0; i < images.size(); ++i) {
+    IntrinsicsImageReport& report = result.images[i];
+    report.index = static_cast<int>(i);
+    const cv::Mat& image = images[i];
+    if (image.size() != image_size || (image.type() != CV_8UC1 && image.type() != CV_8UC3)) {
+      throw std::invalid_argument("CalibrateIntrinsics: image " + std::to_string(i) + " is " +
+                                  std::to_string(image.cols) + "x" + std::to_string(image.rows) +
+                                  " type " + std::to_string(image.type()) + ", expected " +
+                                  std::to_string(nominal.width) + "x" +
+                                  std::to_string(nominal.height) + " CV_8UC1 or CV_8UC3");
+    }
+    cv::Mat grey;
+    if (image.channels() == 3) {
+      cv::cvtColor(image, grey, cv::COLOR_BGR2GRAY);
+    } else {
+      grey = image;
+    }
+    std::vector<cv::Point2f> corners;
+    const bool found = cv::findChessboardCorners(
+        grey, pattern, corners, cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE);
+    if (!found || corners.size() != board.size()) {
+      report.reason = "no checkerboard detected";
+      continue;
+    }
+    cv::cornerSubPix(grey, corners, cv::Size(options.subpix_window, options.subpix_window),
+                     cv::Size(-1, -1),
+                     cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-4));
+    report.corners = static_cast<int>(corners.size());
+    for (const cv::Point2f& p : corners) detected[i].emplace_back(p.x, p.y);
+    candidates.push_back(static_cast<int>(i));
+  }
+  auto reject_rest = [&]() {
+    for (std::size_t i = 0; i < images.size(); ++i) {
+      if (!result.images[i].used) result.rejected.push_back(static_cast<int>(i));
+    }
+  };
+  if (static_cast<int>(candidates.size()) < options.min_images) {
+    throw std::runtime_error("CalibrateIntrinsics: a " + std::to_string(options.board_cols) + "x" +
+                             std::to_string(options.board_rows) + " checkerboard was detected in " +
+                             std::to_string(candidates.size()) + " of " +
+                             std::to_string(images.size()) + " images, need at least " +
+                             std::to_string(options.min_images));
+  }
+
+  // Coverage: the distortion is only determined where corners were seen.
+  const FisheyeCamera nominal_camera(nominal);
+  const double circle_radius = std::min(nominal.fx, nominal.fy) *
+                               nominal_camera.ThetaToThetaD(nominal_camera.MaxValidTheta());
+  double max_radius = 0.0;
+  for (int i : candidates) {
+    for (const cv::Point2d& p : detected[i]) {
+      max_radius = std::max(max_radius, std::hypot(p.x - nominal.cx, p.y - nominal.cy));
+    }
+  }
+  result.radial_coverage = max_radius / circle_radius;
+  if (result.radial_coverage < options.min_radial_coverage) {
+    throw std::runtime_error("CalibrateIntrinsics: the detected boards reach " +
+                             Fixed(max_radius, 1) + " px from the principal point, " +
+                             Fixed(100.0 * result.radial_coverage, 1) +
+                             "% of the image circle's radius (" + Fixed(circle_radius, 1) +
+                             " px); need " + Fixed(100.0 * options.min_radial_coverage, 1) +
+                             "%: take images with the board near the rim of the field");
+  }
+
+  const int flags = cv::fisheye::CALIB_RECOMPUTE_EXTRINSIC | cv::fisheye::CALIB_CHECK_COND |
+                    cv::fisheye::CALIB_FIX_SKEW | cv::fisheye::CALIB_USE_INTRINSIC_GUESS;
+  const cv::TermCriteria criteria(cv::TermCriteria::COUNT + cv::TermCriteria::EPS,
+                                  options.max_iterations, options.epsilon);
+  cv::Matx33d K;
+  cv::Vec4d D;
+  std::vector<cv::Vec3d> rvecs, tvecs;
+  std::vector<int> used = candidates;
+  for (;;) {
+    if (static_cast<int>(used.size()) < options.min_images) {
+      throw std::runtime_error(
+          "CalibrateIntrinsics: after rejecting ill-conditioned images (OpenCV CALIB_CHECK_COND) "
+          "only " +
+          std::to_string(used.size()) + " images remain, need at least " +
+          std::to_string(options.min_images) + ": vary the board's distance and tilt more");
+    }
+    std::vector<std::vector<cv::Point3d>> object_points(used.size(), board);
+    std::vector<std::vector<cv::Point2d>> image_points;
+    for (int i : used) image_points.push_back(detected[i]);
+    K = ToCvK(nominal);
+    K(0, 1) = 0.0;
+    D = ToCvD(nominal);
+    rvecs.clear();
+    tvecs.clear();
+    try {
+      cv::fisheye::calibrate(object_points, image_points, image_size, K, D, rvecs, tvecs, flags,
+                             criteria);
+      break;
+    } catch (const cv::Exception& e) {
+      const int bad = IllConditionedIndex(e.what());
+      if (bad < 0 || bad >= static_cast<int>(used.size())) {
+        throw std::runtime_error(
+            std::string("CalibrateIntrinsics: cv::fisheye::calibrate failed: ") + e.what());
+      }
+      result.images[used[bad]].reason = "ill-conditioned (OpenCV CALIB_CHECK_COND)";
+      used.erase(used.begin() + bad);
+    }
+  }
+
+  FisheyeIntrinsics intrinsics;
+  try {
+    intrinsics = FromCv(K, D, nominal.width, nominal.height, nominal.max_theta);
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error(std::string("CalibrateIntrinsics: unusable result: ") + e.what());
+  }
+
+  // Per-image and overall reprojection errors under the result.
+  double sum_sq = 0.0;
+  std::size_t count = 0;
+  for (std::size_t j = 0; j < used.size(); ++j) {
+    std::vector<cv::Point2d> projected;
+    cv::fisheye::projectPoints(board, projected, rvecs[j], tvecs[j], K, D, intrinsics.skew);
+    double image_sq = 0.0;
+    const auto& seen = detected[used[j]];
+    for (std::size_t k = 0; k < board.size(); ++k) {
+      const cv::Point2d e = projected[k] - seen[k];
+      image_sq += e.dot(e);
+    }
+    IntrinsicsImageReport& report = result.images[used[j]];
+    report.used = true;
+    report.rms_px = std::sqrt(image_sq / static_cast<double>(board.size()));
+    sum_sq += image_sq;
+    count += board.size();
+    cv::Matx33d R;
+    cv::Rodrigues(rvecs[j], R);
+    Eigen::Matrix<double, 3, 4> m;
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) m(r, c) = R(r, c);
+      m(r, 3) = tvecs[j][r];
+    }
+    result.cam_from_board.push_back(Rigid3d::FromMatrix(m));
+  }
+  result.rms_px = std::sqrt(sum_sq / static_cast<double>(count));
+  result.used = used;
+  reject_rest();
+  if (!(result.rms_px <= options.max_rms_px)) {
+    throw std::runtime_error("CalibrateIntrinsics: RMS reprojection error " + Fixed(result.rms_px) +
+                             " px over " + std::to_string(used.size()) +
+                             " images exceeds max_rms_px = " + Fixed(options.max_rms_px));
+  }
+  result.intrinsics = intrinsics;
+  return result;
+}
+
+double MaxRayAngleDifference(const FisheyeIntrinsics& a, const FisheyeIntrinsics& b, int step_px) {
+  if (step_px < 1) {
+    throw std::invalid_argument("MaxRayAngleDifference: step_px must be >= 1, got " +
+                                std::to_string(step_px));
+  }
+  const FisheyeCamera ca(a), cb(b);
+  double worst = 0.0;
+  for (int v = 0; v < a.height; v += step_px) {
+    for (int u = 0; u < a.width; u += step_px) {
+      const Eigen::Vector2d uv(u, v);
+      const auto ra = ca.PixelToRay(uv);
+      const auto rb = cb.PixelToRay(uv);
+      if (!ra || !rb) continue;
+      worst = std::max(worst, std::atan2(ra->cross(*rb).norm(), ra->dot(*rb)));
+    }
+  }
+  return worst;
+}
+
+}  // namespace gs360

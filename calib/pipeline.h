@@ -1,0 +1,111 @@
+#pragma once
+// The calibration stages run in order on a finished (or partly finished) run's database:
+//
+//   intrinsics -> surface_map (nominal pose) -> impressions -> pose -> surface_map (calibrated)
+//   -> render -> dataset -> train -> validate -> export
+//
+// Each stage is a function of stored inputs and options. Its input hash covers the stage's
+// version, its options and the hashes of everything it reads (upstream artifacts, frame
+// checksums, probe positions); its output is stored as an artifact keyed (run, stage, input
+// hash) with its figures as metrics JSON. A stage whose artifact exists is skipped and its output
+// loaded (like a build system); `from_stage` forces that stage and every later one to run again.
+// Changing an option re-runs exactly the stages that depend on it.
+//
+// Production code: this reads only the database and the rig's nominal description. Ground truth
+// (the virtual rig) enters only through the optional ValidationTruth, used for reporting.
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <filesystem>
+#include <functional>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "calib/dataset.h"
+#include "calib/impression_centroid.h"
+#include "calib/intrinsics.h"
+#include "calib/pose.h"
+#include "calib/render.h"
+#include "calib/train.h"
+#include "calib/validate.h"
+#include "geometry/fisheye.h"
+#include "geometry/mesh.h"
+#include "geometry/rigid3.h"
+#include "recon/model_bundle.h"
+#include "recon/reconstructor.h"
+#include "recon/surface_map.h"
+#include "storage/run_database.h"
+
+namespace gs360 {
+
+// The stage names, in order.
+const std::vector<std::string>& CalibrationStages();
+
+// What the rig's configuration says (nominal values only).
+struct CalibrationInputs {
+  std::string sensor;     // description for reports ("cylinder", a mesh path)
+  TriangleMesh gel_mesh;  // sensor frame, mm, outward normals
+  TriangleMesh fin_mesh;  // sensor frame (may be empty)
+  FisheyeIntrinsics nominal_intrinsics;
+  Rigid3d nominal_cam_from_sensor;
+  Rigid3d machine_from_sensor;
+  Eigen::Vector3d tool_offset = Eigen::Vector3d::Zero();  // ball centre = MPos + tool_offset
+  double ball_radius = 2.0;
+  // Checkerboard images for the intrinsics stage (grey or colour, the camera's size). Empty: the
+  // nominal intrinsics are used, and the report says so.
+  std::vector<std::filesystem::path> checkerboard_images;
+};
+
+struct CalibrationOptions {
+  IntrinsicsOptions intrinsics;
+  SurfaceMapOptions surface_map;
+  ImpressionCentroidOptions impression;
+  PoseOptions pose;
+  ProbeRenderOptions render;
+  DatasetOptions dataset;
+  TrainOptions train;
+  ValidationOptions validation;
+  ReconstructionOptions reconstruction;
+  std::string from_stage;            // "" = use every cached stage
+  std::string model_name;            // export: default "run-<id>"
+  std::string model_version;         // export: default the train artifact's hash
+  std::filesystem::path export_dir;  // where model files go; "" = next to the database
+  int threads = 2;
+  void Check() const;  // throws std::invalid_argument naming the field
+};
+
+struct StageReport {
+  std::string stage;
+  std::string input_hash;
+  bool cached = false;
+  double seconds = 0.0;  // this call's time (loading, when cached)
+  nlohmann::json metrics;
+};
+
+struct CalibrationResult {
+  std::vector<StageReport> stages;
+  FisheyeIntrinsics intrinsics;
+  Rigid3d cam_from_sensor;
+  nlohmann::json validation;  // validation.json
+  std::filesystem::path model_path;
+  std::filesystem::path onnx_path;
+  std::filesystem::path report_path;  // HTML
+  std::filesystem::path validation_path;
+  double seconds = 0.0;
+};
+
+// Progress: stage name and a message (on the calling thread).
+using CalibrationLog = std::function<void(const std::string& stage, const std::string& message)>;
+
+// Runs the stages for `run_id` in `db`. Throws std::runtime_error (naming the stage and the
+// problem) when a stage cannot produce its output: no captured probes, intrinsics ill-conditioned,
+// too few impressions for the pose, a corrupt frame (the message names the frame and probe).
+CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
+                                 const CalibrationInputs& inputs, const CalibrationOptions& options,
+                                 const ValidationTruth* truth = nullptr,
+                                 const CalibrationLog& log = {});
+
+}  // namespace gs360

@@ -1,0 +1,373 @@
+#include "calib/pose.h"
+
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
+#include <numeric>
+#include <random>
+#include <sstream>
+#include <string>
+#include <thread>
+
+#include <Eigen/Cholesky>
+#include <Eigen/Geometry>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "geometry/fisheye_cv.h"
+
+namespace gs360 {
+namespace {
+
+template <typename T>
+[[noreturn]] void ThrowField(const char* field, T value, const char* what) {
+  std::ostringstream s;
+  s << "PoseOptions." << field << " " << what << ", got " << value;
+  throw std::invalid_argument(s.str());
+}
+
+// pose(w, dt): rotation exp(w) R, translation t + dt (w rotates about the camera centre).
+Rigid3d Perturb(const Rigid3d& pose, const Eigen::Matrix<double, 6, 1>& delta) {
+  const Eigen::Vector3d w = delta.head<3>();
+  const double angle = w.norm();
+  const Eigen::Quaterniond q = angle > 0.0 ? Eigen::Quaterniond(Eigen::AngleAxisd(angle, w / angle))
+                                           : Eigen::Quaterniond::Identity();
+  return Rigid3d(q * pose.rotation, pose.translation + delta.tail<3>());
+}
+
+double HuberWeight(double r, double k) {
+  return r <= k ? 1.0 : k / r;
+}
+double HuberCost(double r, double k) {
+  return r <= k ? 0.5 * r * r : k * (r - 0.5 * k);
+}
+
+double Median(std::vector<double> v) {
+  if (v.empty()) return 0.0;
+  const auto mid = v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2);
+  std::nth_element(v.begin(), mid, v.end());
+  return *mid;
+}
+
+Eigen::Vector2d Residual(const FisheyeCamera& camera, const Rigid3d& pose, const PoseObservation& o,
+                         const Eigen::Vector2d& offset) {
+  return camera.ProjectUnchecked(pose * o.contact_point_sensor) + offset - o.centroid_px;
+}
+
+// One robust Levenberg-Marquardt fit over the observations flagged in `use`.
+Rigid3d LevenbergMarquardt(const FisheyeCamera& camera, std::span<const PoseObservation> obs,
+                           std::span<const Eigen::Vector2d> offsets, const std::vector<bool>& use,
+                           Rigid3d pose, const PoseOptions& options) {
+  const Eigen::Vector2d zero = Eigen::Vector2d::Zero();
+  auto offset = [&](std::size_t i) -> const Eigen::Vector2d& {
+    return offsets.empty() ? zero : offsets[i];
+  };
+  auto cost = [&](const Rigid3d& p) {
+    double c = 0.0;
+    for (std::size_t i = 0; i < obs.size(); ++i) {
+      if (!use[i]) continue;
+      c += obs[i].weight *
+           HuberCost(Residual(camera, p, obs[i], offset(i)).norm(), options.huber_px);
+    }
+    return c;
+  };
+  double lambda = 1e-3;
+  double current = cost(pose);
+  constexpr double kStep = 1e-6;
+  for (int it = 0; it < options.max_iterations; ++it) {
+    Eigen::Matrix<double, 6, 6> H = Eigen::Matrix<double, 6, 6>::Zero();
+    Eigen::Matrix<double, 6, 1> g = Eigen::Matrix<double, 6, 1>::Zero();
+    std::array<Rigid3d, 12> shifted;
+    for (int k = 0; k < 6; ++k) {
+      Eigen::Matrix<double, 6, 1> d = Eigen::Matrix<double, 6, 1>::Zero();
+      d[k] = kStep;
+      shifted[2 * k] = Perturb(pose, d);
+      shifted[2 * k + 1] = Perturb(pose, -d);
+    }
+    for (std::size_t i = 0; i < obs.size(); ++i) {
+      if (!use[i]) continue;
+      const Eigen::Vector3d& x = obs[i].contact_point_sensor;
+      const Eigen::Vector2d r = Residual(camera, pose, obs[i], offset(i));
+      Eigen::Matrix<double, 2, 6> J;
+      for (int k = 0; k < 6; ++k) {
+        J.col(k) = (camera.ProjectUnchecked(shifted[2 * k] * x) -
+                    camera.ProjectUnchecked(shifted[2 * k + 1] * x)) /
+                   (2.0 * kStep);
+      }
+      const double w = obs[i].weight * HuberWeight(r.norm(), options.huber_px);
+      H.noalias() += w * J.transpose() * J;
+      g.noalias() += w * J.transpose() * r;
+    }
+    bool improved = false;
+    for (int tries = 0; tries < 10 && !improved; ++tries) {
+      Eigen::Matrix<double, 6, 6> A = H;
+      A.diagonal() += lambda * H.diagonal().cwiseMax(1e-12);
+      const Eigen::Matrix<double, 6, 1> step = A.ldlt().solve(-g);
+      if (!step.allFinite()) break;
+      const Rigid3d candidate = Perturb(pose, step);
+      const double c = cost(candidate);
+      if (c < current) {
+        const double rel = (current - c) / std::max(current, 1e-300);
+        pose = candidate;
+        current = c;
+        lambda = std::max(lambda * 0.3, 1e-9);
+        improved = true;
+        if (rel < 1e-12 || step.norm() < 1e-12) return pose;
+      } else {
+        lambda *= 10.0;
+      }
+    }
+    if (!improved) break;
+  }
+  return pose;
+}
+
+// Area centroid of the convex hull of the rendered contact pixels: the region an impression
+// detector sees (calib/impression_centroid.h), bridged across fins like the observed blob.
+Eigen::Vector2d HullCentroid(const ProbeRender& pr) {
+  std::vector<cv::Point> points;
+  for (int y = 0; y < pr.contact.rows; ++y) {
+    const std::uint8_t* row = pr.contact.ptr<std::uint8_t>(y);
+    for (int x = 0; x < pr.contact.cols; ++x) {
+      if (row[x]) points.emplace_back(pr.roi.x + x, pr.roi.y + y);
+    }
+  }
+  if (points.size() < 3) return pr.contact_centroid;
+  std::vector<cv::Point> hull;
+  cv::convexHull(points, hull);
+  const cv::Moments m = cv::moments(hull);
+  if (!(m.m00 > 0.0)) return pr.contact_centroid;
+  return {m.m10 / m.m00, m.m01 / m.m00};
+}
+
+std::string ObservationError(std::size_t i, const char* what) {
+  return "EstimateCamFromSensor: observation " + std::to_string(i) + " has " + what;
+}
+
+}  // namespace
+
+void PoseOptions::Check() const {
+  if (ransac_probes < 6) ThrowField("ransac_probes", ransac_probes, "must be >= 6");
+  if (!(ransac_threshold_px > 0.0)) {
+    ThrowField("ransac_threshold_px", ransac_threshold_px, "must be > 0");
+  }
+  if (ransac_iterations < 1) ThrowField("ransac_iterations", ransac_iterations, "must be >= 1");
+  if (max_iterations < 1) ThrowField("max_iterations", max_iterations, "must be >= 1");
+  if (!(huber_px > 0.0)) ThrowField("huber_px", huber_px, "must be > 0");
+  if (!(outlier_px > 0.0)) ThrowField("outlier_px", outlier_px, "must be > 0");
+  if (min_observations < 6) ThrowField("min_observations", min_observations, "must be >= 6");
+  if (bias_rounds < 1) ThrowField("bias_rounds", bias_rounds, "must be >= 1");
+  if (!(ball_radius_mm > 0.0) || !std::isfinite(ball_radius_mm)) {
+    ThrowField("ball_radius_mm", ball_radius_mm, "must be finite and > 0");
+  }
+  if (threads < 1 || threads > 64) ThrowField("threads", threads, "must be in [1, 64]");
+  render.Check();
+  surface_map.Check();
+}
+
+PoseFit RefineCamFromSensor(const FisheyeCamera& camera,
+                            std::span<const PoseObservation> observations,
+                            std::span<const Eigen::Vector2d> offsets, const Rigid3d& initial,
+                            const PoseOptions& options) {
+  options.Check();
+  if (!offsets.empty() && offsets.size() != observations.size()) {
+    throw std::invalid_argument("RefineCamFromSensor: " + std::to_string(offsets.size()) +
+                                " offsets for " + std::to_string(observations.size()) +
+                                " observations");
+  }
+  const std::size_t n = observations.size();
+  if (static_cast<int>(n) < options.min_observations) {
+    throw PoseError("RefineCamFromSensor: " + std::to_string(n) + " observations, need at least " +
+                    std::to_string(options.min_observations));
+  }
+  const Eigen::Vector2d zero = Eigen::Vector2d::Zero();
+  std::vector<bool> use(n, true);
+  Rigid3d pose = initial;
+  std::vector<double> norms(n);
+  for (int round = 0; round < 6; ++round) {
+    pose = LevenbergMarquardt(camera, observations, offsets, use, pose, options);
+    std::vector<double> inlier_norms;
+    for (std::size_t i = 0; i < n; ++i) {
+      norms[i] =
+          Residual(camera, pose, observations[i], offsets.empty() ? zero : offsets[i]).norm();
+      if (use[i]) inlier_norms.push_back(norms[i]);
+    }
+    // Robust sigma of the 2D residual from the median of its norm (Rayleigh: median = 1.1774 s).
+    const double sigma = Median(inlier_norms) / 1.1774;
+    const double bound = std::max(options.outlier_px, 4.0 * sigma);
+    std::vector<bool> next(n);
+    int count = 0;
+    for (std::size_t i = 0; i < n; ++i) {
+      next[i] = norms[i] <= bound;
+      count += next[i] ? 1 : 0;
+    }
+    if (count < options.min_observations) {
+      throw PoseError("RefineCamFromSensor: only " + std::to_string(count) +
+                      " observations within " + std::to_string(bound) +
+                      " px of the fit, need at least " + std::to_string(options.min_observations));
+    }
+    if (next == use) break;
+    use = std::move(next);
+  }
+  PoseFit fit;
+  fit.cam_from_sensor = pose;
+  fit.inlier = use;
+  double sum = 0.0, wsum = 0.0;
+  for (std::size_t i = 0; i < n; ++i) {
+    if (!use[i]) continue;
+    ++fit.inliers;
+    sum += observations[i].weight * norms[i] * norms[i];
+    wsum += observations[i].weight;
+  }
+  fit.rms_px = std::sqrt(sum / wsum);
+  return fit;
+}
+
+PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
+                                 std::span<const PoseObservation> observations,
+                                 const Rigid3d& nominal_cam_from_sensor, const PoseOptions& options,
+                                 const PoseScene& scene) {
+  const auto start = std::chrono::steady_clock::now();
+  options.Check();
+  if (options.model_bias && scene.gel == nullptr) {
+    throw std::invalid_argument(
+        "EstimateCamFromSensor: PoseOptions.model_bias needs the gel mesh (PoseScene::gel)");
+  }
+  for (std::size_t i = 0; i < observations.size(); ++i) {
+    const PoseObservation& o = observations[i];
+    if (!o.contact_point_sensor.allFinite() || !o.ball_center_sensor.allFinite() ||
+        !o.contact_normal_sensor.allFinite()) {
+      throw std::invalid_argument(ObservationError(i, "a non-finite point"));
+    }
+    if (!o.centroid_px.allFinite()) {
+      throw std::invalid_argument(ObservationError(i, "a non-finite centroid"));
+    }
+    if (!(o.weight > 0.0) || !std::isfinite(o.weight)) {
+      throw std::invalid_argument(ObservationError(i, "a weight that is not finite and > 0"));
+    }
+  }
+  const std::size_t n = observations.size();
+  if (static_cast<int>(n) < options.min_observations) {
+    throw PoseError("EstimateCamFromSensor: " + std::to_string(n) +
+                    " probe impressions, need at least " +
+                    std::to_string(options.min_observations));
+  }
+  PoseResult result;
+
+  // 1. The paper's estimate: RANSAC PnP on undistorted centroids of a random subset.
+  std::vector<int> order(n);
+  std::iota(order.begin(), order.end(), 0);
+  std::mt19937_64 rng(options.seed);
+  std::shuffle(order.begin(), order.end(), rng);
+  order.resize(std::min<std::size_t>(n, static_cast<std::size_t>(options.ransac_probes)));
+  std::vector<cv::Point3d> object;
+  std::vector<cv::Point2d> distorted, normalised;
+  for (int i : order) {
+    const PoseObservation& o = observations[static_cast<std::size_t>(i)];
+    object.emplace_back(o.contact_point_sensor.x(), o.contact_point_sensor.y(),
+                        o.contact_point_sensor.z());
+    distorted.emplace_back(o.centroid_px.x(), o.centroid_px.y());
+  }
+  const FisheyeIntrinsics& in = camera.intrinsics();
+  cv::fisheye::undistortPoints(distorted, normalised, ToCvK(in), ToCvD(in));
+  const Eigen::Matrix3d r0 = nominal_cam_from_sensor.RotationMatrix();
+  cv::Matx33d r0_cv;
+  for (int a = 0; a < 3; ++a) {
+    for (int b = 0; b < 3; ++b) r0_cv(a, b) = r0(a, b);
+  }
+  cv::Vec3d rvec,
+      tvec(nominal_cam_from_sensor.translation.x(), nominal_cam_from_sensor.translation.y(),
+           nominal_cam_from_sensor.translation.z());
+  cv::Rodrigues(r0_cv, rvec);
+  std::vector<int> ransac_inliers;
+  bool ok = false;
+  try {
+    ok = cv::solvePnPRansac(object, normalised, cv::Matx33d::eye(), cv::noArray(), rvec, tvec,
+                            /*useExtrinsicGuess=*/true, options.ransac_iterations,
+                            static_cast<float>(options.ransac_threshold_px / in.fx), 0.999,
+                            ransac_inliers, cv::SOLVEPNP_ITERATIVE);
+  } catch (const cv::Exception& e) {
+    throw PoseError(std::string("EstimateCamFromSensor: solvePnPRansac failed: ") + e.what());
+  }
+  if (!ok || static_cast<int>(ransac_inliers.size()) < options.min_observations) {
+    throw PoseError("EstimateCamFromSensor: solvePnPRansac found no pose with at least " +
+                    std::to_string(options.min_observations) + " inliers among " +
+                    std::to_string(order.size()) + " probes (" +
+                    std::to_string(ransac_inliers.size()) + " inliers)");
+  }
+  cv::Matx33d r_cv;
+  cv::Rodrigues(rvec, r_cv);
+  Eigen::Matrix<double, 3, 4> m;
+  for (int a = 0; a < 3; ++a) {
+    for (int b = 0; b < 3; ++b) m(a, b) = r_cv(a, b);
+    m(a, 3) = tvec[a];
+  }
+  result.paper_cam_from_sensor = Rigid3d::FromMatrix(m);
+  result.paper_inliers = static_cast<int>(ransac_inliers.size());
+  {
+    double sum = 0.0;
+    for (int k : ransac_inliers) {
+      const PoseObservation& o = observations[static_cast<std::size_t>(order[k])];
+      sum +=
+          Residual(camera, result.paper_cam_from_sensor, o, Eigen::Vector2d::Zero()).squaredNorm();
+    }
+    result.paper_rms_px = std::sqrt(sum / static_cast<double>(ransac_inliers.size()));
+  }
+
+  // 2. Refinement over all probes, without offsets.
+  PoseFit fit =
+      RefineCamFromSensor(camera, observations, {}, result.paper_cam_from_sensor, options);
+
+  // 3. Bias model: offsets from rendered imprints under the current pose, then refit.
+  if (options.model_bias) {
+    std::vector<Eigen::Vector2d> offsets(n, Eigen::Vector2d::Zero());
+    for (int round = 0; round < options.bias_rounds; ++round) {
+      const Rigid3d pose = fit.cam_from_sensor;
+      const SurfaceMap map =
+          SurfaceMap::Build(camera, pose, *scene.gel, scene.fins, options.surface_map);
+      std::vector<char> empty(n, 0);
+      auto work = [&](std::size_t begin, std::size_t end) {
+        for (std::size_t i = begin; i < end; ++i) {
+          const PoseObservation& o = observations[i];
+          const ProbeRender pr = RenderProbe(map, camera, pose * o.ball_center_sensor,
+                                             options.ball_radius_mm, options.render);
+          if (pr.contact_pixels == 0) {
+            offsets[i].setZero();
+            empty[i] = 1;
+            continue;
+          }
+          offsets[i] = HullCentroid(pr) - camera.ProjectUnchecked(pose * o.contact_point_sensor);
+        }
+      };
+      const std::size_t threads =
+          std::min<std::size_t>(static_cast<std::size_t>(options.threads), n);
+      std::vector<std::thread> pool;
+      const std::size_t chunk = (n + threads - 1) / threads;
+      for (std::size_t t = 1; t < threads; ++t) {
+        pool.emplace_back(work, std::min(n, t * chunk), std::min(n, (t + 1) * chunk));
+      }
+      work(0, std::min(n, chunk));
+      for (std::thread& t : pool) t.join();
+      fit = RefineCamFromSensor(camera, observations, offsets, pose, options);
+      result.bias_rounds = round + 1;
+      result.no_rendered_contact =
+          static_cast<int>(std::count(empty.begin(), empty.end(), static_cast<char>(1)));
+      double sum = 0.0;
+      for (const Eigen::Vector2d& b : offsets) sum += b.norm();
+      result.mean_bias_px = sum / static_cast<double>(n);
+    }
+  }
+
+  result.cam_from_sensor = fit.cam_from_sensor;
+  result.rms_px = fit.rms_px;
+  result.inliers = fit.inliers;
+  result.outliers = static_cast<int>(n) - fit.inliers;
+  for (std::size_t i = 0; i < n; ++i) {
+    if (!fit.inlier[i]) result.outlier_probe_indices.push_back(observations[i].probe_index);
+  }
+  result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  return result;
+}
+
+}  // namespace gs360

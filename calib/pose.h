@@ -1,0 +1,115 @@
+#pragma once
+// Calibration stage 3, "pose": cam_from_sensor from the probes' impressions.
+//
+// Each captured probe gives a 3D point on the gel (the planned contact point, SENSOR frame, mm)
+// and the image position of its impression (pixels, e.g. capture/impression.h FindImpression on
+// press minus reference). Two estimates are made:
+//   1. "paper" (GelSight360, Sec. III-C): `ransac_probes` probes drawn at random (seeded), their
+//      centroids undistorted to normalised coordinates (cv::fisheye::undistortPoints), then
+//      cv::solvePnPRansac against the contact points, starting from the nominal pose.
+//   2. refined: Levenberg-Marquardt on the fisheye reprojection error of ALL probes (Huber
+//      weights, then observations whose residual exceeds the outlier bound are dropped and the fit
+//      repeated), starting from the paper estimate.
+// Bias model (model_bias): the centroid of an impression is not the projection of its contact
+// point -- the imprint is a disc seen obliquely through a fisheye. With the gel mesh given, each
+// refinement round builds the surface map (recon/surface_map.h) for the current pose, renders
+// every probe's rigid imprint (calib/render.h) and takes bias_i = centroid of the rendered contact
+// - projection of the contact point; the next round fits projection + bias_i to the observed
+// centroids. A few rounds converge (the bias changes slowly with the pose).
+//
+// Units and frames: mm, rad; points in the sensor frame; pixels as geometry/fisheye.h. The
+// intrinsics are given (stage 1's output) and not refined.
+//
+// Errors: PoseError (a std::runtime_error) when there are fewer than min_observations usable
+// observations or PnP finds no pose; std::invalid_argument for invalid options, non-finite
+// observations, or model_bias without a gel mesh.
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <span>
+#include <stdexcept>
+#include <vector>
+
+#include "calib/render.h"
+#include "geometry/bvh.h"
+#include "geometry/fisheye.h"
+#include "geometry/rigid3.h"
+#include "recon/surface_map.h"
+
+namespace gs360 {
+
+class PoseError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+struct PoseObservation {
+  int probe_index = -1;                                              // caller's id (reported back)
+  Eigen::Vector3d contact_point_sensor = Eigen::Vector3d::Zero();    // planned contact point, mm
+  Eigen::Vector3d contact_normal_sensor = Eigen::Vector3d::UnitZ();  // its outward unit normal
+  Eigen::Vector3d ball_center_sensor = Eigen::Vector3d::Zero();      // ball centre at the press, mm
+  Eigen::Vector2d centroid_px = Eigen::Vector2d::Zero();             // observed impression centre
+  double weight = 1.0;                                               // > 0 (e.g. 1 / sigma^2)
+};
+
+struct PoseOptions {
+  int ransac_probes = 100;           // probes for the paper's PnP (all if fewer are given)
+  double ransac_threshold_px = 4.0;  // PnP RANSAC inlier bound (pixels, converted with fx)
+  int ransac_iterations = 1000;      // PnP RANSAC iterations
+  int max_iterations = 50;           // Levenberg-Marquardt iterations per fit
+  double huber_px = 0.5;             // Huber weight knee (px)
+  double outlier_px = 2.0;           // refined fit: residuals above max(this, 4 sigma) are out
+  int min_observations = 6;          // fewer usable observations -> PoseError (>= 6)
+  bool model_bias = true;            // needs the gel mesh (PoseScene::gel)
+  int bias_rounds = 3;               // bias model: render / refit rounds (>= 1)
+  double ball_radius_mm = 2.0;       // the probe ball (> 0)
+  ProbeRenderOptions render;         // for the bias model's imprints
+  SurfaceMapOptions surface_map;     // for the bias model's surface maps
+  std::uint64_t seed = 1;            // draws the paper's probes
+  int threads = 2;                   // rendering the imprints (1..64)
+  // Throws std::invalid_argument naming the field and its value.
+  void Check() const;
+};
+
+// The sensor's geometry, for the bias model (sensor frame; either may be null when unused).
+struct PoseScene {
+  const Bvh* gel = nullptr;
+  const Bvh* fins = nullptr;
+};
+
+struct PoseResult {
+  Rigid3d cam_from_sensor;        // refined (with the bias model if enabled)
+  Rigid3d paper_cam_from_sensor;  // the paper's RANSAC PnP on ransac_probes probes
+  double rms_px = 0.0;            // refined: RMS residual over the inliers (bias-corrected)
+  double paper_rms_px = 0.0;      // paper: RMS reprojection over its RANSAC inliers
+  int paper_inliers = 0;
+  int inliers = 0, outliers = 0;           // refined fit over all observations
+  std::vector<int> outlier_probe_indices;  // PoseObservation::probe_index of the outliers
+  int bias_rounds = 0;                     // rounds of the bias model done (0 = none)
+  double mean_bias_px = 0.0;               // mean |bias_i| of the last round (0 without the model)
+  int no_rendered_contact = 0;             // observations whose rendered imprint was empty (bias 0)
+  double seconds = 0.0;
+};
+
+// `camera`: the calibrated intrinsics. `nominal_cam_from_sensor`: the CAD pose (PnP start).
+PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
+                                 std::span<const PoseObservation> observations,
+                                 const Rigid3d& nominal_cam_from_sensor, const PoseOptions& options,
+                                 const PoseScene& scene = {});
+
+// Robust Levenberg-Marquardt refinement alone (used by EstimateCamFromSensor): fits
+// camera.ProjectUnchecked(cam_from_sensor * X_i) + offset_i to the observed centroids from
+// `initial`, Huber weights, outlier rounds. `offsets` empty = no offsets, else one per
+// observation. `inlier` (output, optional) receives one flag per observation.
+struct PoseFit {
+  Rigid3d cam_from_sensor;
+  double rms_px = 0.0;
+  int inliers = 0;
+  std::vector<bool> inlier;
+};
+PoseFit RefineCamFromSensor(const FisheyeCamera& camera,
+                            std::span<const PoseObservation> observations,
+                            std::span<const Eigen::Vector2d> offsets, const Rigid3d& initial,
+                            const PoseOptions& options);
+
+}  // namespace gs360

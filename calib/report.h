@@ -1,0 +1,45 @@
+#pragma once
+// The calibration's human-readable outputs: a text table of the validation (for the terminal)
+// and a self-contained HTML page (inline SVG charts, images as PNG data URIs; no network).
+
+#include <Eigen/Core>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "calib/train.h"
+#include "calib/validate.h"
+
+namespace gs360 {
+
+struct ReportInputs {
+  std::string title;              // e.g. "gs360 calibration: run 3 (cylinder)"
+  nlohmann::json validation;      // validation.json (calib/validate.cc layout, + "pose")
+  nlohmann::json stages;          // array of {stage, input_hash, cached, seconds, metrics}
+  std::vector<TrainEpoch> curve;  // training curve (may be empty)
+  std::vector<ValidationExample> examples;
+  // Per evaluated probe: contact point (sensor frame, mm) and its mean depth error (mm).
+  std::vector<std::pair<Eigen::Vector3d, double>> probe_errors;
+  double gel_height_mm = 30.0;
+  // Top of the error map's colour scale (mm): larger errors get the top colour.
+  double error_map_clamp_mm = 0.1;
+};
+
+// Text table (fixed width, <= 100 columns): per truth, rows = bands, columns = mean / p95 depth
+// error of both integrators, median normal error, peak error; plus the pose line if present.
+// Columns: pixels, mean mm (default method), mean mm (the other), p95 mm, median normal deg and
+// peak error mm (default method). Rows: every known band in validate.cc's order (then unknown
+// ones); "-" for a null / missing value. Truths in the "truths" order. Never throws.
+std::string FormatValidationTable(const nlohmann::json& validation);
+
+// The HTML page: title, stage table, validation tables, training curve (inline SVG, log-scale
+// loss), error map over the sensor (inline SVG scatter: azimuth deg x height mm, colour = mean
+// error clamped at error_map_clamp_mm) and the examples (PNG data URIs, one shared colour scale
+// per example). All text is HTML-escaped. Never throws for missing optional parts (they are left
+// out) or malformed ones (wrong JSON types, empty or mistyped images are skipped); only
+// std::bad_alloc can escape.
+std::string RenderReportHtml(const ReportInputs& inputs);
+
+}  // namespace gs360

@@ -1,0 +1,623 @@
+#include "calib/train.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <condition_variable>
+#include <exception>
+#include <limits>
+#include <mutex>
+#include <numbers>
+#include <stdexcept>
+#include <string>
+#include <thread>
+
+namespace gs360 {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double SecondsSince(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+// A fixed set of threads running one job at a time: Run(fn) calls fn(t) for every t in
+// [0, threads), t = 0 on the caller's thread, and returns when all are done. The first exception
+// thrown by any fn is rethrown by Run.
+class Pool {
+ public:
+  explicit Pool(int threads) : threads_(threads) {
+    for (int t = 1; t < threads_; ++t) workers_.emplace_back([this, t] { Worker(t); });
+  }
+  ~Pool() {
+    {
+      std::lock_guard lock(mutex_);
+      stop_ = true;
+    }
+    start_.notify_all();
+    for (std::thread& w : workers_) w.join();
+  }
+  Pool(const Pool&) = delete;
+  Pool& operator=(const Pool&) = delete;
+
+  int threads() const { return threads_; }
+
+  void Run(const std::function<void(int)>& fn) {
+    if (threads_ == 1) {
+      fn(0);
+      return;
+    }
+    {
+      std::lock_guard lock(mutex_);
+      job_ = &fn;
+      pending_ = threads_ - 1;
+      ++generation_;
+    }
+    start_.notify_all();
+    std::exception_ptr mine;
+    try {
+      fn(0);
+    } catch (...) {
+      mine = std::current_exception();
+    }
+    std::unique_lock lock(mutex_);
+    done_.wait(lock, [this] { return pending_ == 0; });
+    job_ = nullptr;
+    std::exception_ptr error = mine ? mine : error_;
+    error_ = nullptr;
+    lock.unlock();
+    if (error) std::rethrow_exception(error);
+  }
+
+ private:
+  void Worker(int t) {
+    std::uint64_t seen = 0;
+    for (;;) {
+      const std::function<void(int)>* job;
+      {
+        std::unique_lock lock(mutex_);
+        start_.wait(lock, [&] { return stop_ || generation_ != seen; });
+        if (stop_) return;
+        seen = generation_;
+        job = job_;
+      }
+      std::exception_ptr error;
+      try {
+        (*job)(t);
+      } catch (...) {
+        error = std::current_exception();
+      }
+      {
+        std::lock_guard lock(mutex_);
+        if (error && !error_) error_ = error;
+        if (--pending_ == 0) done_.notify_one();
+      }
+    }
+  }
+
+  int threads_;
+  std::vector<std::thread> workers_;
+  std::mutex mutex_;
+  std::condition_variable start_, done_;
+  const std::function<void(int)>* job_ = nullptr;
+  std::uint64_t generation_ = 0;
+  int pending_ = 0;
+  bool stop_ = false;
+  std::exception_ptr error_;
+};
+
+// xoshiro256** seeded by splitmix64: portable, so the shuffle is the same on every platform.
+class Rng {
+ public:
+  explicit Rng(std::uint64_t seed) {
+    std::uint64_t s = seed;
+    for (auto& w : state_) {
+      std::uint64_t z = (s += 0x9e3779b97f4a7c15ull);
+      z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+      z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+      w = z ^ (z >> 31);
+    }
+  }
+  std::uint64_t Next() {
+    const std::uint64_t result = Rotl(state_[1] * 5, 7) * 9;
+    const std::uint64_t t = state_[1] << 17;
+    state_[2] ^= state_[0];
+    state_[3] ^= state_[1];
+    state_[1] ^= state_[2];
+    state_[0] ^= state_[3];
+    state_[2] ^= t;
+    state_[3] = Rotl(state_[3], 45);
+    return result;
+  }
+  // Unbiased integer in [0, bound) (Lemire's multiply-and-reject on 32-bit bounds).
+  std::uint32_t Below(std::uint32_t bound) {
+    std::uint64_t m = (Next() >> 32) * bound;
+    auto low = static_cast<std::uint32_t>(m);
+    if (low < bound) {
+      const std::uint32_t threshold = static_cast<std::uint32_t>(-bound) % bound;
+      while (low < threshold) {
+        m = (Next() >> 32) * bound;
+        low = static_cast<std::uint32_t>(m);
+      }
+    }
+    return static_cast<std::uint32_t>(m >> 32);
+  }
+
+ private:
+  static std::uint64_t Rotl(std::uint64_t x, int k) { return (x << k) | (x >> (64 - k)); }
+  std::uint64_t state_[4];
+};
+
+void Shuffle(std::vector<std::uint32_t>& perm, Rng& rng) {
+  for (std::size_t i = perm.size(); i > 1; --i) {
+    const std::uint32_t j = rng.Below(static_cast<std::uint32_t>(i));
+    std::swap(perm[i - 1], perm[j]);
+  }
+}
+
+// Per-thread buffers for one chunk of a mini-batch.
+struct Workspace {
+  Eigen::MatrixXf x;                  // [in, chunk] normalised inputs
+  Eigen::MatrixXf y;                  // [out, chunk] normalised targets
+  std::vector<Eigen::MatrixXf> act;   // act[k]: [sizes[k], chunk]; act[L] = linear output
+  std::vector<Eigen::MatrixXf> pre;   // silu only: sigmoid of the hidden pre-activations
+  Eigen::MatrixXf delta, delta_prev;  // [widest, chunk]
+  std::vector<Eigen::MatrixXf> grad_w;
+  std::vector<Eigen::VectorXf> grad_b;
+  double loss_sum = 0.0;  // sum of squared normalised errors of the chunk
+};
+
+// Forward and backward pass on the first m columns of ws.x / ws.y (raw features and targets):
+// sets ws.loss_sum (sum of squared normalised errors of these columns) and ws.grad_w / grad_b
+// to their share of the gradient of the mean loss of a batch of batch_total samples.
+void ChunkGradient(const Mlp& mlp, Workspace& ws, Eigen::Index m, Eigen::Index batch_total) {
+  const std::vector<int>& sizes = mlp.sizes();
+  const int num_layers = static_cast<int>(sizes.size()) - 1;
+  const Activation activation = mlp.activation();
+  const Eigen::VectorXf& in_mean = mlp.input_mean();
+  const Eigen::VectorXf in_inv_scale = mlp.input_scale().cwiseInverse();
+  const Eigen::VectorXf& out_mean = mlp.output_mean();
+  const Eigen::VectorXf out_inv_scale = mlp.output_scale().cwiseInverse();
+  ws.act[0].leftCols(m) =
+      ((ws.x.leftCols(m).colwise() - in_mean).array().colwise() * in_inv_scale.array()).matrix();
+  const auto target =
+      ((ws.y.leftCols(m).colwise() - out_mean).array().colwise() * out_inv_scale.array());
+  const auto& layers = mlp.layers();
+  for (int k = 0; k < num_layers; ++k) {
+    auto z = ws.act[k + 1].leftCols(m);
+    z.noalias() = layers[k].weight * ws.act[k].leftCols(m);
+    z.colwise() += layers[k].bias;
+    if (k + 1 < num_layers) {
+      switch (activation) {
+        case Activation::kTanh:
+          z = z.array().tanh().matrix();
+          break;
+        case Activation::kRelu:
+          z = z.array().max(0.0f).matrix();
+          break;
+        case Activation::kSilu:
+          // Keep s = sigmoid(z) = (1 + tanh(z / 2)) / 2 (as in Mlp::Forward) for the backward
+          // pass: silu'(z) = s + z s (1 - s) = s + a (1 - s) with a = z s.
+          ws.pre[k + 1].leftCols(m) = (0.5f + 0.5f * (0.5f * z.array()).tanh()).matrix();
+          z = (z.array() * ws.pre[k + 1].leftCols(m).array()).matrix();
+          break;
+      }
+    }
+  }
+  const int out = sizes.back();
+  auto delta = ws.delta.topLeftCorner(out, m);
+  delta = (ws.act[num_layers].leftCols(m).array() - target).matrix();
+  ws.loss_sum = static_cast<double>(delta.squaredNorm());
+  delta *= static_cast<float>(2.0 / (static_cast<double>(batch_total) * out));
+  Eigen::MatrixXf* d = &ws.delta;
+  Eigen::MatrixXf* d_prev = &ws.delta_prev;
+  for (int k = num_layers - 1; k >= 0; --k) {
+    const auto dk = d->topLeftCorner(sizes[k + 1], m);
+    ws.grad_w[k].noalias() = dk * ws.act[k].leftCols(m).transpose();
+    ws.grad_b[k] = dk.rowwise().sum();
+    if (k == 0) break;
+    auto dp = d_prev->topLeftCorner(sizes[k], m);
+    dp.noalias() = layers[k].weight.transpose() * dk;
+    const auto a = ws.act[k].leftCols(m).array();
+    switch (activation) {
+      case Activation::kTanh:
+        dp.array() *= 1.0f - a.square();
+        break;
+      case Activation::kRelu:
+        dp = (a > 0.0f).select(dp, 0.0f);
+        break;
+      case Activation::kSilu: {
+        const auto s = ws.pre[k].leftCols(m).array();
+        dp.array() *= s + a * (1.0f - s);
+        break;
+      }
+    }
+    std::swap(d, d_prev);
+  }
+}
+
+Workspace MakeWorkspace(const std::vector<int>& sizes, Activation activation,
+                        Eigen::Index chunk_max) {
+  const int widest = *std::max_element(sizes.begin(), sizes.end());
+  Workspace ws;
+  ws.x.resize(sizes.front(), chunk_max);
+  ws.y.resize(sizes.back(), chunk_max);
+  ws.act.resize(sizes.size());
+  for (std::size_t k = 0; k < sizes.size(); ++k) ws.act[k].resize(sizes[k], chunk_max);
+  if (activation == Activation::kSilu) {
+    ws.pre.resize(sizes.size());
+    for (std::size_t k = 1; k + 1 < sizes.size(); ++k) ws.pre[k].resize(sizes[k], chunk_max);
+  }
+  ws.delta.resize(widest, chunk_max);
+  ws.delta_prev.resize(widest, chunk_max);
+  for (std::size_t k = 0; k + 1 < sizes.size(); ++k) {
+    ws.grad_w.push_back(Eigen::MatrixXf::Zero(sizes[k + 1], sizes[k]));
+    ws.grad_b.push_back(Eigen::VectorXf::Zero(sizes[k + 1]));
+  }
+  return ws;
+}
+
+void CheckData(const char* name_x, const Eigen::MatrixXf& x, const char* name_y,
+               const Eigen::MatrixXf& y) {
+  if (x.cols() == 0) throw std::invalid_argument(std::string("Train: ") + name_x + " is empty");
+  if (x.cols() != y.cols()) {
+    throw std::invalid_argument(std::string("Train: ") + name_x + " has " +
+                                std::to_string(x.cols()) + " samples but " + name_y + " has " +
+                                std::to_string(y.cols()));
+  }
+  if (x.cols() > static_cast<Eigen::Index>(std::numeric_limits<std::uint32_t>::max())) {
+    throw std::invalid_argument(std::string("Train: ") + name_x + " has too many samples (" +
+                                std::to_string(x.cols()) + ")");
+  }
+  if (!x.allFinite()) {
+    throw std::invalid_argument(std::string("Train: ") + name_x + " has non-finite values");
+  }
+  if (!y.allFinite()) {
+    throw std::invalid_argument(std::string("Train: ") + name_y + " has non-finite values");
+  }
+}
+
+// Mean and standard deviation per row (double accumulation); a zero spread gets scale 1.
+void RowStats(const Eigen::MatrixXf& m, Eigen::VectorXf& mean, Eigen::VectorXf& scale) {
+  const Eigen::Index n = m.cols();
+  Eigen::VectorXd sum = Eigen::VectorXd::Zero(m.rows());
+  for (Eigen::Index c = 0; c < n; ++c) sum += m.col(c).cast<double>();
+  const Eigen::VectorXd mu = sum / static_cast<double>(n);
+  Eigen::VectorXd sq = Eigen::VectorXd::Zero(m.rows());
+  for (Eigen::Index c = 0; c < n; ++c)
+    sq += (m.col(c).cast<double>() - mu).array().square().matrix();
+  mean = mu.cast<float>();
+  scale.resize(m.rows());
+  for (Eigen::Index r = 0; r < m.rows(); ++r) {
+    const double sd = std::sqrt(sq[r] / static_cast<double>(n));
+    scale[r] = (sd > 1e-12 && std::isfinite(sd)) ? static_cast<float>(sd) : 1.0f;
+  }
+}
+
+// Sum of squared normalised errors over columns [begin, end) (blocked Forward).
+double SquaredErrorSum(const Mlp& mlp, const Eigen::MatrixXf& x, const Eigen::MatrixXf& y,
+                       Eigen::Index begin, Eigen::Index end) {
+  constexpr Eigen::Index kBlock = 4096;
+  const Eigen::ArrayXf inv_scale = mlp.output_scale().array().inverse();
+  double sum = 0.0;
+  for (Eigen::Index c0 = begin; c0 < end; c0 += kBlock) {
+    const Eigen::Index m = std::min(kBlock, end - c0);
+    const Eigen::MatrixXf pred = mlp.Forward(x.middleCols(c0, m));
+    sum += static_cast<double>(
+        ((pred - y.middleCols(c0, m)).array().colwise() * inv_scale).square().sum());
+  }
+  return sum;
+}
+
+double EvaluateLossWithPool(Pool& pool, const Mlp& mlp, const Eigen::MatrixXf& x,
+                            const Eigen::MatrixXf& y) {
+  const int threads = pool.threads();
+  std::vector<double> sums(static_cast<std::size_t>(threads), 0.0);
+  const Eigen::Index n = x.cols();
+  pool.Run([&](int t) {
+    const Eigen::Index begin = n * t / threads;
+    const Eigen::Index end = n * (t + 1) / threads;
+    sums[static_cast<std::size_t>(t)] = SquaredErrorSum(mlp, x, y, begin, end);
+  });
+  double total = 0.0;
+  for (double s : sums) total += s;
+  return total / (static_cast<double>(n) * static_cast<double>(y.rows()));
+}
+
+std::string Field(const char* name, double value) {
+  return std::string("TrainOptions.") + name + " = " + std::to_string(value);
+}
+
+}  // namespace
+
+std::string_view ToString(LearningRateSchedule s) {
+  switch (s) {
+    case LearningRateSchedule::kConstant:
+      return "constant";
+    case LearningRateSchedule::kPlateau:
+      return "plateau";
+    case LearningRateSchedule::kCosine:
+      return "cosine";
+  }
+  return "unknown";
+}
+
+LearningRateSchedule ParseLearningRateSchedule(std::string_view s) {
+  if (s == "constant") return LearningRateSchedule::kConstant;
+  if (s == "plateau") return LearningRateSchedule::kPlateau;
+  if (s == "cosine") return LearningRateSchedule::kCosine;
+  throw std::invalid_argument("unknown learning-rate schedule '" + std::string(s) +
+                              "' (expected constant, plateau or cosine)");
+}
+
+void TrainOptions::Check() const {
+  for (std::size_t i = 0; i < hidden.size(); ++i) {
+    if (hidden[i] < 1 || hidden[i] > 65536) {
+      throw std::invalid_argument("TrainOptions.hidden[" + std::to_string(i) +
+                                  "] = " + std::to_string(hidden[i]) + " must be in [1, 65536]");
+    }
+  }
+  if (batch_size < 1)
+    throw std::invalid_argument(Field("batch_size", batch_size) + " must be >= 1");
+  if (!std::isfinite(learning_rate) || learning_rate <= 0.0) {
+    throw std::invalid_argument(Field("learning_rate", learning_rate) + " must be > 0");
+  }
+  if (!(beta1 >= 0.0 && beta1 < 1.0)) {
+    throw std::invalid_argument(Field("beta1", beta1) + " must be in [0, 1)");
+  }
+  if (!(beta2 >= 0.0 && beta2 < 1.0)) {
+    throw std::invalid_argument(Field("beta2", beta2) + " must be in [0, 1)");
+  }
+  if (!std::isfinite(epsilon) || epsilon <= 0.0) {
+    throw std::invalid_argument(Field("epsilon", epsilon) + " must be > 0");
+  }
+  if (!(min_learning_rate >= 0.0 && min_learning_rate <= learning_rate)) {
+    throw std::invalid_argument(Field("min_learning_rate", min_learning_rate) +
+                                " must be in [0, learning_rate]");
+  }
+  if (!(plateau_factor > 0.0 && plateau_factor < 1.0)) {
+    throw std::invalid_argument(Field("plateau_factor", plateau_factor) + " must be in (0, 1)");
+  }
+  if (plateau_epochs < 1) {
+    throw std::invalid_argument(Field("plateau_epochs", plateau_epochs) + " must be >= 1");
+  }
+  if (!(plateau_threshold >= 0.0 && plateau_threshold < 1.0)) {
+    throw std::invalid_argument(Field("plateau_threshold", plateau_threshold) +
+                                " must be in [0, 1)");
+  }
+  if (max_epochs < 1)
+    throw std::invalid_argument(Field("max_epochs", max_epochs) + " must be >= 1");
+  if (patience < 0) throw std::invalid_argument(Field("patience", patience) + " must be >= 0");
+  if (threads < 1 || threads > 256) {
+    throw std::invalid_argument(Field("threads", threads) + " must be in [1, 256]");
+  }
+  switch (schedule) {
+    case LearningRateSchedule::kConstant:
+    case LearningRateSchedule::kPlateau:
+    case LearningRateSchedule::kCosine:
+      break;
+    default:
+      throw std::invalid_argument(
+          "TrainOptions.schedule = " + std::to_string(static_cast<int>(schedule)) + " is unknown");
+  }
+}
+
+LossGradient ComputeLossGradient(const Mlp& mlp, const Eigen::MatrixXf& x,
+                                 const Eigen::MatrixXf& y) {
+  if (mlp.sizes().empty()) throw std::invalid_argument("ComputeLossGradient: empty network");
+  if (x.rows() != mlp.input_size() || y.rows() != mlp.output_size() || x.cols() != y.cols() ||
+      x.cols() == 0) {
+    throw std::invalid_argument("ComputeLossGradient: data [" + std::to_string(x.rows()) + " x " +
+                                std::to_string(x.cols()) + "], [" + std::to_string(y.rows()) +
+                                " x " + std::to_string(y.cols()) + "] does not fit the network " +
+                                std::to_string(mlp.input_size()) + " -> " +
+                                std::to_string(mlp.output_size()));
+  }
+  Workspace ws = MakeWorkspace(mlp.sizes(), mlp.activation(), x.cols());
+  ws.x = x;
+  ws.y = y;
+  ChunkGradient(mlp, ws, x.cols(), x.cols());
+  LossGradient result;
+  result.loss = ws.loss_sum / (static_cast<double>(x.cols()) * static_cast<double>(y.rows()));
+  for (std::size_t k = 0; k < ws.grad_w.size(); ++k) {
+    result.gradient.push_back({std::move(ws.grad_w[k]), std::move(ws.grad_b[k])});
+  }
+  return result;
+}
+
+double EvaluateLoss(const Mlp& mlp, const Eigen::MatrixXf& x, const Eigen::MatrixXf& y,
+                    int threads) {
+  if (threads < 1 || threads > 256) {
+    throw std::invalid_argument("EvaluateLoss: threads = " + std::to_string(threads));
+  }
+  if (x.rows() != mlp.input_size() || y.rows() != mlp.output_size() || x.cols() != y.cols()) {
+    throw std::invalid_argument("EvaluateLoss: data [" + std::to_string(x.rows()) + " x " +
+                                std::to_string(x.cols()) + "], [" + std::to_string(y.rows()) +
+                                " x " + std::to_string(y.cols()) + "] does not fit the network " +
+                                std::to_string(mlp.input_size()) + " -> " +
+                                std::to_string(mlp.output_size()));
+  }
+  if (x.cols() == 0) throw std::invalid_argument("EvaluateLoss: empty data");
+  Pool pool(threads);
+  return EvaluateLossWithPool(pool, mlp, x, y);
+}
+
+TrainResult Train(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train,
+                  const Eigen::MatrixXf& x_val, const Eigen::MatrixXf& y_val,
+                  const TrainOptions& options, const TrainProgress& progress) {
+  options.Check();
+  CheckData("x_train", x_train, "y_train", y_train);
+  CheckData("x_val", x_val, "y_val", y_val);
+  if (x_train.rows() < 1 || y_train.rows() < 1) {
+    throw std::invalid_argument("Train: x_train has " + std::to_string(x_train.rows()) +
+                                " features and y_train " + std::to_string(y_train.rows()) +
+                                " outputs; both must be >= 1");
+  }
+  if (x_val.rows() != x_train.rows() || y_val.rows() != y_train.rows()) {
+    throw std::invalid_argument("Train: validation rows (" + std::to_string(x_val.rows()) + ", " +
+                                std::to_string(y_val.rows()) + ") differ from training rows (" +
+                                std::to_string(x_train.rows()) + ", " +
+                                std::to_string(y_train.rows()) + ")");
+  }
+  const auto start = Clock::now();
+
+  std::vector<int> sizes;
+  sizes.push_back(static_cast<int>(x_train.rows()));
+  sizes.insert(sizes.end(), options.hidden.begin(), options.hidden.end());
+  sizes.push_back(static_cast<int>(y_train.rows()));
+  const int num_layers = static_cast<int>(sizes.size()) - 1;
+
+  TrainResult result;
+  result.mlp = Mlp(sizes, options.activation, options.seed);
+  Mlp& mlp = result.mlp;
+  {
+    Eigen::VectorXf mean, scale;
+    RowStats(x_train, mean, scale);
+    mlp.SetInputNormalization(mean, scale);
+    RowStats(y_train, mean, scale);
+    mlp.SetOutputNormalization(mean, scale);
+  }
+  const int threads = options.threads;
+  const Eigen::Index n = x_train.cols();
+  const Eigen::Index batch = std::min<Eigen::Index>(options.batch_size, n);
+  const Eigen::Index chunk_max = (batch + threads - 1) / threads;
+  const Activation activation = options.activation;
+
+  std::vector<Workspace> spaces;
+  for (int t = 0; t < threads; ++t) spaces.push_back(MakeWorkspace(sizes, activation, chunk_max));
+  // Adam moments.
+  std::vector<Eigen::MatrixXf> m_w, v_w;
+  std::vector<Eigen::VectorXf> m_b, v_b;
+  for (int k = 0; k < num_layers; ++k) {
+    m_w.push_back(Eigen::MatrixXf::Zero(sizes[k + 1], sizes[k]));
+    v_w.push_back(Eigen::MatrixXf::Zero(sizes[k + 1], sizes[k]));
+    m_b.push_back(Eigen::VectorXf::Zero(sizes[k + 1]));
+    v_b.push_back(Eigen::VectorXf::Zero(sizes[k + 1]));
+  }
+
+  std::vector<std::uint32_t> perm(static_cast<std::size_t>(n));
+  for (std::size_t i = 0; i < perm.size(); ++i) perm[i] = static_cast<std::uint32_t>(i);
+  Rng rng(options.seed ^ 0xd1b54a32d192ed03ull);
+
+  Pool pool(threads);
+  // Shared per-batch state read by the workers.
+  Eigen::Index batch_begin = 0;
+  Eigen::Index batch_size = 0;
+
+  const auto chunk_job = [&](int t) {
+    Workspace& ws = spaces[static_cast<std::size_t>(t)];
+    const Eigen::Index c_begin = batch_size * t / threads;
+    const Eigen::Index m = batch_size * (t + 1) / threads - c_begin;
+    ws.loss_sum = 0.0;
+    if (m == 0) {
+      for (int k = 0; k < num_layers; ++k) {
+        ws.grad_w[k].setZero();
+        ws.grad_b[k].setZero();
+      }
+      return;
+    }
+    const std::uint32_t* idx = perm.data() + batch_begin + c_begin;
+    for (Eigen::Index j = 0; j < m; ++j) {
+      ws.x.col(j) = x_train.col(idx[j]);
+      ws.y.col(j) = y_train.col(idx[j]);
+    }
+    ChunkGradient(mlp, ws, m, batch_size);
+  };
+  const std::function<void(int)> chunk_fn = chunk_job;
+
+  const auto b1 = static_cast<float>(options.beta1);
+  const auto b2 = static_cast<float>(options.beta2);
+  const auto eps = static_cast<float>(options.epsilon);
+  double b1_power = 1.0, b2_power = 1.0;
+  Eigen::MatrixXf gw;
+  Eigen::VectorXf gb;
+
+  std::vector<MlpLayer> best_layers = mlp.layers();
+  double best_val = std::numeric_limits<double>::infinity();
+  double significant_best = std::numeric_limits<double>::infinity();
+  int significant_epoch = -1;
+  double plateau_best = std::numeric_limits<double>::infinity();
+  int plateau_count = 0;
+  double lr = options.learning_rate;
+
+  for (int epoch = 0; epoch < options.max_epochs; ++epoch) {
+    const auto epoch_start = Clock::now();
+    if (options.schedule == LearningRateSchedule::kCosine) {
+      lr = options.min_learning_rate +
+           0.5 * (options.learning_rate - options.min_learning_rate) *
+               (1.0 + std::cos(std::numbers::pi * epoch / options.max_epochs));
+    }
+    Shuffle(perm, rng);
+    double loss_sum = 0.0;
+    for (batch_begin = 0; batch_begin < n; batch_begin += batch) {
+      batch_size = std::min(batch, n - batch_begin);
+      pool.Run(chunk_fn);
+      b1_power *= options.beta1;
+      b2_power *= options.beta2;
+      const auto step = static_cast<float>(lr * std::sqrt(1.0 - b2_power) / (1.0 - b1_power));
+      auto& layers = mlp.layers();
+      for (int k = 0; k < num_layers; ++k) {
+        gw = spaces[0].grad_w[k];
+        gb = spaces[0].grad_b[k];
+        for (int t = 1; t < threads; ++t) {
+          gw += spaces[static_cast<std::size_t>(t)].grad_w[k];
+          gb += spaces[static_cast<std::size_t>(t)].grad_b[k];
+        }
+        m_w[k] = b1 * m_w[k] + (1.0f - b1) * gw;
+        v_w[k] = b2 * v_w[k] + (1.0f - b2) * gw.cwiseAbs2();
+        layers[k].weight.array() -= step * m_w[k].array() / (v_w[k].array().sqrt() + eps);
+        m_b[k] = b1 * m_b[k] + (1.0f - b1) * gb;
+        v_b[k] = b2 * v_b[k] + (1.0f - b2) * gb.cwiseAbs2();
+        layers[k].bias.array() -= step * m_b[k].array() / (v_b[k].array().sqrt() + eps);
+      }
+      for (const Workspace& ws : spaces) loss_sum += ws.loss_sum;
+    }
+    const double train_loss =
+        loss_sum / (static_cast<double>(n) * static_cast<double>(y_train.rows()));
+    const double val_loss = std::isfinite(train_loss)
+                                ? EvaluateLossWithPool(pool, mlp, x_val, y_val)
+                                : std::numeric_limits<double>::quiet_NaN();
+    result.curve.push_back({epoch, train_loss, val_loss, SecondsSince(epoch_start), lr});
+    if (progress) progress(epoch, train_loss, val_loss);
+
+    if (!std::isfinite(train_loss) || !std::isfinite(val_loss)) {
+      // Diverged: keep the best weights so far.
+      if (result.best_epoch < 0) {
+        throw std::runtime_error("Train: the loss became non-finite in epoch " +
+                                 std::to_string(epoch) + " (learning_rate " + std::to_string(lr) +
+                                 " too high?)");
+      }
+      result.stopped_early = true;
+      break;
+    }
+    if (val_loss < best_val) {
+      best_val = val_loss;
+      result.best_epoch = epoch;
+      best_layers = mlp.layers();
+    }
+    if (val_loss < significant_best * (1.0 - options.plateau_threshold)) {
+      significant_best = val_loss;
+      significant_epoch = epoch;
+    }
+    if (options.schedule == LearningRateSchedule::kPlateau) {
+      if (val_loss < plateau_best * (1.0 - options.plateau_threshold)) {
+        plateau_best = val_loss;
+        plateau_count = 0;
+      } else if (++plateau_count >= options.plateau_epochs) {
+        lr = std::max(lr * options.plateau_factor, options.min_learning_rate);
+        plateau_count = 0;
+      }
+    }
+    if (options.patience > 0 && epoch - significant_epoch >= options.patience &&
+        epoch + 1 < options.max_epochs) {
+      result.stopped_early = true;
+      break;
+    }
+  }
+  mlp.layers() = best_layers;
+  result.best_val_loss = best_val;
+  result.seconds = SecondsSince(start);
+  return result;
+}
+
+}  // namespace gs360

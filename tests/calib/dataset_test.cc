@@ -1,0 +1,122 @@
+#include <catch2/catch.hpp>
+
+#include <set>
+
+#include "calib/dataset.h"
+#include "recon/features.h"
+
+using namespace gs360;
+
+namespace {
+// A render with a disc of contact (slopes = position in the disc) in a 40 x 40 roi.
+ProbeRender DiscRender(int contact_radius) {
+  ProbeRender r;
+  r.roi = cv::Rect(100, 50, 40, 40);
+  r.contact = cv::Mat(r.roi.size(), CV_8U, cv::Scalar::all(0));
+  r.gx = cv::Mat(r.roi.size(), CV_32F, cv::Scalar::all(0));
+  r.gy = r.gx.clone();
+  r.rho = cv::Mat(r.roi.size(), CV_64F, cv::Scalar::all(12.0));
+  r.rho.at<double>(0, 0) = std::nan("");  // one pixel not visible
+  for (int y = 0; y < 40; ++y) {
+    for (int x = 0; x < 40; ++x) {
+      if ((x - 20) * (x - 20) + (y - 20) * (y - 20) <= contact_radius * contact_radius) {
+        r.contact.at<std::uint8_t>(y, x) = 255;
+        r.gx.at<float>(y, x) = static_cast<float>(x - 20) / 10.0f;
+        r.gy.at<float>(y, x) = static_cast<float>(y - 20) / 10.0f;
+        ++r.contact_pixels;
+      }
+    }
+  }
+  return r;
+}
+}  // namespace
+
+TEST_CASE("dataset: contact pixels capped, about 25% non-contact, targets from the render",
+          "[calib][dataset]") {
+  cv::Mat diff(240, 320, CV_32FC3, cv::Scalar(0.1f, 0.2f, 0.3f));
+  DatasetOptions o;
+  o.max_contact_samples_per_probe = 100;
+  Dataset d;
+  const ProbeRender r = DiscRender(12);  // ~450 contact pixels
+  const std::size_t n = AppendProbeSamples(diff, r, 42, o, &d);
+  int contact = 0;
+  for (auto c : d.contact) contact += c;
+  CHECK(contact == 100);
+  CHECK(n == d.probe.size());
+  CHECK(static_cast<double>(n - 100) / static_cast<double>(n) == Approx(0.25).margin(0.01));
+  for (std::size_t i = 0; i < n; ++i) {
+    const auto c = static_cast<Eigen::Index>(i);
+    const int x = static_cast<int>(d.x(0, c)) - r.roi.x, y = static_cast<int>(d.x(1, c)) - r.roi.y;
+    CHECK(d.probe[i] == 42);
+    // Features are (u, v, R, G, B): the difference image is B, G, R.
+    CHECK(d.x(2, c) == Approx(0.3f));
+    CHECK(d.x(4, c) == Approx(0.1f));
+    if (d.contact[i]) {
+      CHECK(r.contact.at<std::uint8_t>(y, x) == 255);
+      CHECK(d.y(0, c) == r.gx.at<float>(y, x));
+    } else {
+      CHECK(r.contact.at<std::uint8_t>(y, x) == 0);
+      CHECK_FALSE((x == 0 && y == 0));  // the invisible pixel is never used
+      CHECK(d.y(0, c) == 0.0f);
+    }
+  }
+  // Too little contact: nothing.
+  CHECK(AppendProbeSamples(diff, DiscRender(1), 43, o, &d) == 0);
+  // Deterministic per (seed, probe).
+  Dataset again;
+  AppendProbeSamples(diff, r, 42, o, &again);
+  CHECK(again.x == d.x.leftCols(again.x.cols()));
+}
+
+TEST_CASE("dataset: the split is by probe, seeded, with every split non-empty",
+          "[calib][dataset]") {
+  std::vector<std::int32_t> probes;
+  for (int i = 0; i < 200; ++i) probes.push_back(i * 3);
+  DatasetOptions o;
+  const auto a = SplitProbes(probes, o);
+  const auto b = SplitProbes(probes, o);
+  CHECK(a == b);
+  int counts[3] = {0, 0, 0};
+  for (Split s : a) ++counts[static_cast<int>(s)];
+  CHECK(counts[1] == 20);
+  CHECK(counts[2] == 20);
+  o.seed = 2;
+  CHECK(SplitProbes(probes, o) != a);
+  const std::vector<std::int32_t> three = {5, 6, 7};
+  const auto s3 = SplitProbes(three, DatasetOptions{});
+  CHECK(std::set<Split>(s3.begin(), s3.end()).size() == 3);
+
+  // Samples of one probe never land in two splits.
+  cv::Mat diff(240, 320, CV_32FC3, cv::Scalar::all(0.05f));
+  Dataset d;
+  for (int p = 0; p < 30; ++p) AppendProbeSamples(diff, DiscRender(8), p, DatasetOptions{}, &d);
+  for (int p = 0; p < 30; ++p) d.probes.push_back(p);
+  d.probe_split = SplitProbes(d.probes, DatasetOptions{});
+  const std::size_t total =
+      d.Count(Split::kTrain) + d.Count(Split::kValidation) + d.Count(Split::kTest);
+  CHECK(total == d.probe.size());
+  const auto test = d.ProbesIn(Split::kTest);
+  const Eigen::MatrixXf xt = d.X(Split::kTest);
+  CHECK(static_cast<std::size_t>(xt.cols()) == d.Count(Split::kTest));
+  CHECK_FALSE(test.empty());
+}
+
+TEST_CASE("dataset: binary round trip, corruption refused", "[calib][dataset]") {
+  cv::Mat diff(240, 320, CV_32FC3, cv::Scalar(0.1f, -0.2f, 0.3f));
+  Dataset d;
+  for (int p = 0; p < 5; ++p) AppendProbeSamples(diff, DiscRender(9), p, DatasetOptions{}, &d);
+  d.probes = {0, 1, 2, 3, 4};
+  d.probe_split = SplitProbes(d.probes, DatasetOptions{});
+  const auto bytes = d.Serialize();
+  const Dataset e = Dataset::Deserialize(bytes);
+  CHECK(e.x == d.x);
+  CHECK(e.y == d.y);
+  CHECK(e.probe == d.probe);
+  CHECK(e.contact == d.contact);
+  CHECK(e.probe_split == d.probe_split);
+  auto bad = bytes;
+  bad[bad.size() / 2] ^= 1;
+  CHECK_THROWS_WITH(Dataset::Deserialize(bad), Catch::Contains("checksum"));
+  std::vector<std::uint8_t> cut(bytes.begin(), bytes.begin() + 30);
+  CHECK_THROWS_AS(Dataset::Deserialize(cut), std::runtime_error);
+}

@@ -1,0 +1,175 @@
+// The calibration stages end to end on a small simulated run, and the stage cache.
+
+#include <catch2/catch.hpp>
+
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <map>
+#include <random>
+
+#include "calib/pipeline.h"
+#include "sim/rig_model.h"
+#include "sim/tactile_camera.h"
+
+using namespace gs360;
+
+namespace {
+
+struct SmallRun {
+  std::filesystem::path dir;
+  std::filesystem::path db_path;
+  std::int64_t run_id = 0;
+  CalibrationInputs inputs;
+};
+
+// A run of `n` presses rendered straight from the simulated camera (no CNC needed: the frames are
+// committed with the planned machine positions, as a finished acquisition leaves them).
+SmallRun MakeSmallRun(int n, const std::string& name) {
+  SmallRun s;
+  s.dir = std::filesystem::temp_directory_path() / ("gs360_pipeline_" + name);
+  std::filesystem::remove_all(s.dir);
+  std::filesystem::create_directories(s.dir);
+  s.db_path = s.dir / "run.db";
+  SimRigOptions so;
+  so.machine_from_sensor = Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(-150, -90, -93));
+  so.tool_offset = Eigen::Vector3d(0, 0, -50);
+  auto rig = std::make_shared<const SimRig>(so);
+  TactileCamera camera(rig);
+  RunDatabaseOptions dbo;
+  dbo.synchronous = SyncMode::kNormal;
+  RunDatabase db(s.db_path, dbo);
+  s.run_id = db.CreateRun("{}", "test-mesh", name);
+  std::mt19937_64 rng(7);
+  std::uniform_real_distribution<double> t_dist(0.08, 0.85), phi_dist(0.0, 2.0 * M_PI);
+  std::vector<ProbePlanEntry> plan;
+  std::vector<Eigen::Vector3d> balls;
+  while (static_cast<int>(plan.size()) < n) {
+    const double t = t_dist(rng), phi = phi_dist(rng);
+    // Keep away from the fins (the planner would drop those points).
+    if (std::abs(std::sin(2.0 * phi)) < 0.3) continue;
+    ProbePlanEntry e;
+    e.point_sensor = rig->profile().SurfacePoint(t, phi);
+    e.normal_sensor = rig->profile().SurfaceNormal(t, phi);
+    const Eigen::Vector3d ball = e.point_sensor + (rig->ball_radius() - 1.0) * e.normal_sensor;
+    e.press_machine = rig->MachinePositionForBall(ball);
+    e.approach_machine = e.press_machine + Eigen::Vector3d(0, 0, 5);
+    e.retract_machine = e.approach_machine;
+    plan.push_back(e);
+    balls.push_back(ball);
+  }
+  const auto ids = db.InsertPlan(s.run_id, plan);
+  db.AddReferenceFrame(s.run_id, camera.RenderReference(0, 0.0), 0.0);
+  for (int i = 0; i < n; ++i) {
+    const cv::Mat frame = camera.RenderAtBall(balls[static_cast<std::size_t>(i)], i + 1, 2.0 * i);
+    CaptureReport report;
+    report.machine_position = plan[static_cast<std::size_t>(i)].press_machine;
+    report.sync_time = 1.0 + i;
+    report.frame_time = 1.05 + i;
+    db.CommitCapture(ids[static_cast<std::size_t>(i)], frame, report);
+  }
+  s.inputs.sensor = "cylinder";
+  s.inputs.gel_mesh = rig->gel_mesh();
+  s.inputs.fin_mesh = rig->fin_mesh();
+  s.inputs.nominal_intrinsics = rig->nominal_intrinsics();
+  s.inputs.nominal_cam_from_sensor = rig->nominal_cam_from_sensor();
+  s.inputs.machine_from_sensor = rig->machine_from_sensor();
+  s.inputs.tool_offset = rig->tool_offset();
+  s.inputs.ball_radius = rig->ball_radius();
+  return s;
+}
+
+CalibrationOptions FastOptions(const std::filesystem::path& dir) {
+  CalibrationOptions o;
+  o.train.max_epochs = 3;
+  o.train.hidden = {16, 16};
+  o.validation.max_probes = 6;
+  o.validation.examples = 1;
+  o.export_dir = dir;
+  o.model_version = "t";
+  return o;
+}
+
+std::map<std::string, bool> Cached(const CalibrationResult& r) {
+  std::map<std::string, bool> m;
+  for (const StageReport& s : r.stages) m[s.stage] = s.cached;
+  return m;
+}
+
+}  // namespace
+
+TEST_CASE(
+    "calibration stages: a second run is all cache, a changed option re-runs what depends on it",
+    "[calib][pipeline]") {
+  SmallRun s = MakeSmallRun(60, "cache");
+  RunDatabase db(s.db_path);
+  CalibrationOptions o = FastOptions(s.dir);
+
+  const auto t_log = std::chrono::steady_clock::now();
+  const CalibrationResult first = RunCalibration(
+      db, s.run_id, s.inputs, o, nullptr, [&](const std::string& stage, const std::string& m) {
+        if (std::getenv("GS360_TEST_LOG") == nullptr) return;
+        std::fprintf(
+            stderr, "%8.2f %s %s\n",
+            std::chrono::duration<double>(std::chrono::steady_clock::now() - t_log).count(),
+            stage.c_str(), m.c_str());
+      });
+  if (std::getenv("GS360_TEST_LOG") != nullptr) {
+    std::fprintf(stderr, "validation: %s\n", first.validation.dump().substr(0, 600).c_str());
+  }
+  REQUIRE(first.stages.size() == CalibrationStages().size());
+  for (const StageReport& st : first.stages) CHECK_FALSE(st.cached);
+  CHECK(std::filesystem::exists(first.model_path));
+  CHECK(std::filesystem::exists(first.onnx_path));
+  CHECK(std::filesystem::exists(first.report_path));
+  CHECK(first.validation.at("results")
+            .at("rigid")
+            .at("discontinuity")
+            .at("all")
+            .at("pixels")
+            .get<int>() > 0);
+  // The pose moved from the nominal toward the (hidden) truth: the sim's camera is 0.3 mm / 1 deg
+  // off.
+  CHECK(TranslationDifferenceMm(first.cam_from_sensor, s.inputs.nominal_cam_from_sensor) > 0.05);
+
+  const CalibrationResult second = RunCalibration(db, s.run_id, s.inputs, o);
+  for (const StageReport& st : second.stages) CHECK(st.cached);
+  CHECK(TranslationDifferenceMm(second.cam_from_sensor, first.cam_from_sensor) == 0.0);
+  CHECK(second.validation == first.validation);
+
+  // A deleted model file is written again (the export is the product), nothing else re-runs.
+  std::filesystem::remove(first.model_path);
+  auto c = Cached(RunCalibration(db, s.run_id, s.inputs, o));
+  CHECK(c["validate"]);
+  CHECK_FALSE(c["export"]);
+  CHECK(std::filesystem::exists(first.model_path));
+
+  // A training option: train and everything after it run again, nothing before.
+  o.train.learning_rate *= 0.5;
+  c = Cached(RunCalibration(db, s.run_id, s.inputs, o));
+  for (const char* stage :
+       {"intrinsics", "impressions", "pose", "surface_map", "render", "dataset"}) {
+    CHECK(c[stage]);
+  }
+  for (const char* stage : {"train", "validate", "export"}) CHECK_FALSE(c[stage]);
+
+  // --from render forces render and later stages.
+  o.from_stage = "render";
+  c = Cached(RunCalibration(db, s.run_id, s.inputs, o));
+  CHECK(c["surface_map"]);
+  CHECK_FALSE(c["render"]);
+  CHECK_FALSE(c["dataset"]);
+
+  o.from_stage = "nonsense";
+  CHECK_THROWS_WITH(RunCalibration(db, s.run_id, s.inputs, o), Catch::Contains("nonsense"));
+  std::filesystem::remove_all(s.dir);
+}
+
+TEST_CASE("calibration stages: too few captured probes is a clear error", "[calib][pipeline]") {
+  SmallRun s = MakeSmallRun(8, "few");
+  RunDatabase db(s.db_path);
+  CHECK_THROWS_WITH(RunCalibration(db, s.run_id, s.inputs, FastOptions(s.dir)),
+                    Catch::Contains("8 captured probes"));
+  std::filesystem::remove_all(s.dir);
+}

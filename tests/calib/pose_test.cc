@@ -1,0 +1,217 @@
+#include "calib/pose.h"
+
+#include <catch2/catch.hpp>
+#include <cmath>
+#include <memory>
+#include <numbers>
+#include <random>
+#include <set>
+#include <vector>
+
+#include <opencv2/imgproc.hpp>
+
+#include "calib/impression_centroid.h"
+#include "calib/render.h"
+#include "recon/surface_map.h"
+#include "sim/ground_truth.h"
+#include "sim/rig_model.h"
+#include "sim/tactile_camera.h"
+
+namespace gs360 {
+namespace {
+
+constexpr double kRadToDeg = 180.0 / std::numbers::pi;
+
+double CentreErrorMm(const Rigid3d& a, const Rigid3d& b) {
+  return (a.Inverse().translation - b.Inverse().translation).norm();
+}
+double RotationErrorDeg(const Rigid3d& a, const Rigid3d& b) {
+  return RotationDifferenceRad(a, b) * kRadToDeg;
+}
+
+// Random visible points of the sensor as the nominal camera sees them.
+std::vector<PoseObservation> SampleSurface(const SimRig& rig, int count, std::uint64_t seed) {
+  const FisheyeCamera nominal(rig.nominal_intrinsics());
+  const Rigid3d cam_from_sensor = rig.nominal_cam_from_sensor();
+  const SurfaceMap map = SurfaceMap::Build(nominal, cam_from_sensor, rig.gel_bvh(), &rig.fin_bvh());
+  const Rigid3d sensor_from_cam = cam_from_sensor.Inverse();
+  std::mt19937_64 rng(seed);
+  std::uniform_int_distribution<int> du(0, map.width() - 1), dv(0, map.height() - 1);
+  std::vector<PoseObservation> out;
+  while (static_cast<int>(out.size()) < count) {
+    const int u = du(rng), v = dv(rng);
+    if (!map.visible(u, v) || map.view_angle(u, v) > 70.0 / kRadToDeg) continue;
+    PoseObservation o;
+    o.probe_index = static_cast<int>(out.size());
+    o.contact_point_sensor = sensor_from_cam * map.point0(u, v);
+    o.contact_normal_sensor = sensor_from_cam.RotateDirection(map.normal0(u, v)).normalized();
+    o.ball_center_sensor =
+        o.contact_point_sensor + o.contact_normal_sensor * (rig.ball_radius() - 1.0);
+    out.push_back(o);
+  }
+  return out;
+}
+
+std::shared_ptr<const SimRig> DefaultRig() {
+  static const std::shared_ptr<const SimRig> rig = [] {
+    const SimRigOptions options;
+    return std::make_shared<const SimRig>(options);
+  }();
+  return rig;
+}
+
+Rigid3d Offset(const Rigid3d& pose, double mm, double deg) {
+  const Rigid3d delta = Rigid3d::FromAxisAngle(Eigen::Vector3d(0.3, -1.0, 0.5), deg / kRadToDeg,
+                                               Eigen::Vector3d(0.6, 0.2, -0.77).normalized() * mm);
+  return delta * pose;
+}
+
+TEST_CASE("EstimateCamFromSensor: exact projections with noise and outliers", "[pose]") {
+  const SimRig& rig = *DefaultRig();
+  const FisheyeCamera camera(rig.nominal_intrinsics());
+  const Rigid3d nominal = rig.nominal_cam_from_sensor();
+  for (const auto& [mm, deg] : {std::pair{0.3, 1.0}, std::pair{1.0, 3.0}}) {
+    const Rigid3d truth = Offset(nominal, mm, deg);
+    std::vector<PoseObservation> obs = SampleSurface(rig, 600, 3);
+    std::mt19937_64 rng(9);
+    std::normal_distribution<double> noise(0.0, 0.3);
+    std::uniform_real_distribution<double> far(8.0, 30.0), angle(0.0, 2.0 * std::numbers::pi);
+    std::set<int> planted;
+    for (PoseObservation& o : obs) {
+      o.centroid_px = camera.ProjectUnchecked(truth * o.contact_point_sensor) +
+                      Eigen::Vector2d(noise(rng), noise(rng));
+      if (o.probe_index % 20 == 7) {  // 5% outliers
+        const double a = angle(rng), d = far(rng);
+        o.centroid_px += d * Eigen::Vector2d(std::cos(a), std::sin(a));
+        planted.insert(o.probe_index);
+      }
+    }
+    PoseOptions options;
+    options.model_bias = false;
+    const PoseResult r = EstimateCamFromSensor(camera, obs, nominal, options);
+    INFO("offset " << mm << " mm " << deg << " deg: refined "
+                   << CentreErrorMm(r.cam_from_sensor, truth) << " mm "
+                   << RotationErrorDeg(r.cam_from_sensor, truth) << " deg; paper "
+                   << CentreErrorMm(r.paper_cam_from_sensor, truth) << " mm "
+                   << RotationErrorDeg(r.paper_cam_from_sensor, truth) << " deg");
+    CHECK(CentreErrorMm(r.cam_from_sensor, truth) < 0.01);
+    CHECK(RotationErrorDeg(r.cam_from_sensor, truth) < 0.02);
+    CHECK(CentreErrorMm(r.paper_cam_from_sensor, truth) < 0.1);
+    CHECK(r.rms_px == Approx(0.3 * std::sqrt(2.0)).epsilon(0.15));
+    CHECK(r.outliers == static_cast<int>(planted.size()));
+    CHECK(std::set<int>(r.outlier_probe_indices.begin(), r.outlier_probe_indices.end()) == planted);
+    CHECK(r.inliers + r.outliers == 600);
+    CHECK(r.bias_rounds == 0);
+  }
+}
+
+// The rendered imprint's hull centroid, as EstimateCamFromSensor predicts it.
+Eigen::Vector2d RenderedHullCentroid(const SurfaceMap& map, const FisheyeCamera& camera,
+                                     const Eigen::Vector3d& ball_cam, double radius) {
+  const ProbeRender pr = RenderProbe(map, camera, ball_cam, radius);
+  std::vector<cv::Point> points, hull;
+  for (int y = 0; y < pr.contact.rows; ++y) {
+    for (int x = 0; x < pr.contact.cols; ++x) {
+      if (pr.contact.at<std::uint8_t>(y, x)) points.emplace_back(pr.roi.x + x, pr.roi.y + y);
+    }
+  }
+  if (points.size() < 3) return Eigen::Vector2d::Constant(std::nan(""));
+  cv::convexHull(points, hull);
+  const cv::Moments m = cv::moments(hull);
+  return {m.m10 / m.m00, m.m01 / m.m00};
+}
+
+TEST_CASE("EstimateCamFromSensor: the bias model removes the imprint's bias", "[pose]") {
+  const SimRig& rig = *DefaultRig();
+  const FisheyeCamera camera(rig.nominal_intrinsics());
+  const Rigid3d nominal = rig.nominal_cam_from_sensor();
+  const Rigid3d truth = Offset(nominal, 0.3, 1.0);
+  const SurfaceMap true_map = SurfaceMap::Build(camera, truth, rig.gel_bvh(), &rig.fin_bvh());
+  std::vector<PoseObservation> obs;
+  for (PoseObservation o : SampleSurface(rig, 400, 5)) {
+    o.centroid_px =
+        RenderedHullCentroid(true_map, camera, truth * o.ball_center_sensor, rig.ball_radius());
+    if (o.centroid_px.allFinite()) obs.push_back(o);
+  }
+  REQUIRE(obs.size() > 350);
+  PoseOptions options;
+  options.ball_radius_mm = rig.ball_radius();
+  const PoseScene scene{&rig.gel_bvh(), &rig.fin_bvh()};
+  options.model_bias = false;
+  const PoseResult plain = EstimateCamFromSensor(camera, obs, nominal, options, scene);
+  options.model_bias = true;
+  const PoseResult biased = EstimateCamFromSensor(camera, obs, nominal, options, scene);
+  const double plain_mm = CentreErrorMm(plain.cam_from_sensor, truth);
+  const double biased_mm = CentreErrorMm(biased.cam_from_sensor, truth);
+  const double biased_deg = RotationErrorDeg(biased.cam_from_sensor, truth);
+  INFO("no model " << plain_mm << " mm " << RotationErrorDeg(plain.cam_from_sensor, truth)
+                   << " deg, rms " << plain.rms_px << "; model " << biased_mm << " mm "
+                   << biased_deg << " deg, rms " << biased.rms_px << ", mean bias "
+                   << biased.mean_bias_px);
+  CHECK(biased.bias_rounds == options.bias_rounds);
+  CHECK(biased.mean_bias_px > 0.3);
+  CHECK(biased.rms_px < 0.1);
+  CHECK(biased.rms_px < plain.rms_px / 3.0);
+  CHECK(biased_mm < 0.005);
+  CHECK(biased_deg < 0.005);
+  CHECK(biased_mm < plain_mm);
+}
+
+TEST_CASE("EstimateCamFromSensor: simulated impressions", "[pose]") {
+  const auto rig = DefaultRig();
+  const FisheyeCamera camera = SimGroundTruth::TrueCamera(*rig);
+  const Rigid3d truth = SimGroundTruth::TrueCamFromSensor(*rig);
+  TactileCameraOptions camera_options;
+  camera_options.threads = 2;
+  TactileCamera sim(rig, camera_options);
+  const cv::Mat reference = sim.RenderReference(100000);
+  std::vector<PoseObservation> obs;
+  for (PoseObservation o : SampleSurface(*rig, 300, 11)) {
+    const cv::Mat press = sim.RenderAtBall(o.ball_center_sensor, o.probe_index);
+    const auto region = FindImpressionRegion(press, reference);
+    if (!region) continue;
+    o.centroid_px = region->centroid;
+    obs.push_back(o);
+  }
+  REQUIRE(obs.size() > 280);
+  PoseOptions options;
+  options.ball_radius_mm = rig->ball_radius();
+  const PoseResult r = EstimateCamFromSensor(camera, obs, rig->nominal_cam_from_sensor(), options,
+                                             PoseScene{&rig->gel_bvh(), &rig->fin_bvh()});
+  const double mm = CentreErrorMm(r.cam_from_sensor, truth);
+  const double deg = RotationErrorDeg(r.cam_from_sensor, truth);
+  INFO("refined " << mm << " mm " << deg << " deg, rms " << r.rms_px << ", " << r.outliers
+                  << " outliers; paper " << CentreErrorMm(r.paper_cam_from_sensor, truth) << " mm "
+                  << RotationErrorDeg(r.paper_cam_from_sensor, truth) << " deg");
+  // The nominal pose is 0.3 mm and 1 deg off.
+  CHECK(mm < 0.08);
+  CHECK(deg < 0.15);
+  CHECK(r.inliers > 150);
+}
+
+TEST_CASE("EstimateCamFromSensor: failures are clear", "[pose]") {
+  const SimRig& rig = *DefaultRig();
+  const FisheyeCamera camera(rig.nominal_intrinsics());
+  std::vector<PoseObservation> obs = SampleSurface(rig, 5, 1);
+  for (PoseObservation& o : obs) {
+    o.centroid_px = camera.ProjectUnchecked(rig.nominal_cam_from_sensor() * o.contact_point_sensor);
+  }
+  PoseOptions options;
+  options.model_bias = false;
+  CHECK_THROWS_AS(EstimateCamFromSensor(camera, obs, rig.nominal_cam_from_sensor(), options),
+                  PoseError);
+  CHECK_THROWS_WITH(EstimateCamFromSensor(camera, obs, rig.nominal_cam_from_sensor(), options),
+                    Catch::Contains("5 probe impressions, need at least 6"));
+  options.model_bias = true;
+  CHECK_THROWS_WITH(EstimateCamFromSensor(camera, obs, rig.nominal_cam_from_sensor(), options),
+                    Catch::Contains("gel mesh"));
+  PoseOptions bad;
+  bad.ransac_probes = 3;
+  CHECK_THROWS_WITH(bad.Check(), Catch::Contains("ransac_probes"));
+  bad = {};
+  bad.threads = 0;
+  CHECK_THROWS_WITH(bad.Check(), Catch::Contains("threads"));
+}
+
+}  // namespace
+}  // namespace gs360
