@@ -11,9 +11,10 @@ struct CommandContext {
   int verbosity = 0;  // -v / -vv on the top-level app
 };
 
-void RegisterSimCommands(CLI::App& app, CommandContext& ctx);    // sim-cnc
-void RegisterDemoCommand(CLI::App& app, CommandContext& ctx);    // demo
-void RegisterRunCommands(CLI::App& app, CommandContext& ctx);    // run start|resume|status
-void RegisterBenchCommands(CLI::App& app, CommandContext& ctx);  // bench acquisition
+void RegisterSimCommands(CLI::App& app, CommandContext& ctx);       // sim-cnc
+void RegisterDemoCommand(CLI::App& app, CommandContext& ctx);       // demo
+void RegisterRunCommands(CLI::App& app, CommandContext& ctx);       // run start|resume|status
+void RegisterBenchCommands(CLI::App& app, CommandContext& ctx);     // bench acquisition
+void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx);  // calibrate
 
 }  // namespace gs360::cli

@@ -23,6 +23,7 @@ int main(int argc, char** argv) {
   gs360::cli::RegisterDemoCommand(app, ctx);
   gs360::cli::RegisterRunCommands(app, ctx);
   gs360::cli::RegisterBenchCommands(app, ctx);
+  gs360::cli::RegisterCalibrateCommand(app, ctx);
 
   try {
     app.parse(argc, argv);

@@ -1,6 +1,12 @@
 #include "cli/sim_bridge.h"
 
+#include <cstdio>
 #include <stdexcept>
+
+#include <opencv2/imgcodecs.hpp>
+
+#include "sim/checkerboard.h"
+#include "sim/ground_truth.h"
 
 namespace gs360::cli {
 
@@ -16,6 +22,27 @@ SimRigOptions SimRigOptionsFor(const RigConfig& rig, std::uint64_t seed) {
   sim.ball_radius = rig.ball_radius;
   sim.seed = seed;
   return sim;
+}
+
+int WriteSimCheckerboards(const SimRig& rig, const std::filesystem::path& dir, int count,
+                          std::uint64_t seed) {
+  std::filesystem::create_directories(dir);
+  const FisheyeIntrinsics& lens = SimGroundTruth::TrueIntrinsics(rig);
+  CheckerboardOptions board;
+  CheckerboardPoseOptions pose_options;
+  pose_options.count = count;
+  const std::vector<Rigid3d> poses = CheckerboardPoses(board, lens, pose_options, seed);
+  int written = 0;
+  for (std::size_t i = 0; i < poses.size(); ++i) {
+    const cv::Mat image = RenderCheckerboard(board, poses[i], lens, seed * 1000 + i);
+    char name[32];
+    std::snprintf(name, sizeof(name), "board_%02zu.png", i);
+    if (!cv::imwrite((dir / name).string(), image)) {
+      throw std::runtime_error("cannot write " + (dir / name).string());
+    }
+    ++written;
+  }
+  return written;
 }
 
 VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t seed,

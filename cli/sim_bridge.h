@@ -20,6 +20,11 @@ struct VirtualSetup {
   RunConfig config;
   std::unique_ptr<VirtualRig> rig;
 };
+// Checkerboard images through the rig's TRUE lens (what a lab shoots before assembly), written
+// as PNG files into `dir` (created). Returns the number written.
+int WriteSimCheckerboards(const SimRig& rig, const std::filesystem::path& dir, int count,
+                          std::uint64_t seed);
+
 VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t seed,
                               const std::filesystem::path& frame_socket = {},
                               const std::string& symlink = {});
@@ -36,7 +41,7 @@ namespace gs360::cli {
 struct CaptureTruth {
   int frames = 0;
   int off_target = 0;         // frames with the tool further than tolerance from the press point
-  int unverified = 0;  // frames older than the virtual CNC's kept motion history
+  int unverified = 0;         // frames older than the virtual CNC's kept motion history
   double max_error_mm = 0.0;  // largest |true - planned press| at sync or frame time
   double max_reported_error_mm = 0.0;  // largest |reported MPos - true position| at frame time
 };
