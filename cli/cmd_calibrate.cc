@@ -22,6 +22,8 @@ struct CalibrateArgs {
   std::string version;
   int threads = 2;
   int max_epochs = 0;
+  std::vector<int> hidden;
+  int samples_per_probe = 0;
   int max_validation_probes = 0;
   std::int64_t sim_truth_seed = -1;
 };
@@ -46,6 +48,10 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
   cmd->add_option("--model-version", a.version, "Model version (default: the training's hash)");
   cmd->add_option("--threads", a.threads, "Worker threads")->capture_default_str();
   cmd->add_option("--max-epochs", a.max_epochs, "Training epochs at most (default: the trainer's)");
+  cmd->add_option("--hidden", a.hidden, "MLP hidden layer widths (default: 32 32 32)")
+      ->delimiter(',');
+  cmd->add_option("--samples-per-probe", a.samples_per_probe,
+                  "Contact pixels sampled per probe for training (default: 250)");
   cmd->add_option("--max-validation-probes", a.max_validation_probes,
                   "Held-out probes evaluated at most (default: 400)");
   cmd->add_option("--sim-truth-seed", a.sim_truth_seed,
@@ -66,6 +72,9 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
     options.validation.threads = a.threads;
     options.surface_map.threads = a.threads;
     if (a.max_epochs > 0) options.train.max_epochs = a.max_epochs;
+    if (!a.hidden.empty()) options.train.hidden = a.hidden;
+    if (a.samples_per_probe > 0)
+      options.dataset.max_contact_samples_per_probe = a.samples_per_probe;
     if (a.max_validation_probes > 0) options.validation.max_probes = a.max_validation_probes;
     std::unique_ptr<SimValidationTruth> truth;
     if (a.sim_truth_seed >= 0) {
