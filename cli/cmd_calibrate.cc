@@ -24,6 +24,7 @@ struct CalibrateArgs {
   int max_epochs = 0;
   std::vector<int> hidden;
   int samples_per_probe = 0;
+  double smooth_sigma = -1.0;
   int max_validation_probes = 0;
   std::int64_t sim_truth_seed = -1;
 };
@@ -48,10 +49,13 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
   cmd->add_option("--model-version", a.version, "Model version (default: the training's hash)");
   cmd->add_option("--threads", a.threads, "Worker threads")->capture_default_str();
   cmd->add_option("--max-epochs", a.max_epochs, "Training epochs at most (default: the trainer's)");
-  cmd->add_option("--hidden", a.hidden, "MLP hidden layer widths (default: 32 32 32)")
+  cmd->add_option("--hidden", a.hidden,
+                  "MLP hidden layer widths, comma separated (default: 64,64,64)")
       ->delimiter(',');
   cmd->add_option("--samples-per-probe", a.samples_per_probe,
                   "Contact pixels sampled per probe for training (default: 250)");
+  cmd->add_option("--smooth-sigma", a.smooth_sigma,
+                  "Gaussian smoothing (px) of the colour difference before the MLP (default 1)");
   cmd->add_option("--max-validation-probes", a.max_validation_probes,
                   "Held-out probes evaluated at most (default: 400)");
   cmd->add_option("--sim-truth-seed", a.sim_truth_seed,
@@ -73,6 +77,7 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
     options.surface_map.threads = a.threads;
     if (a.max_epochs > 0) options.train.max_epochs = a.max_epochs;
     if (!a.hidden.empty()) options.train.hidden = a.hidden;
+    if (a.smooth_sigma >= 0.0) options.reconstruction.difference.smooth_sigma_px = a.smooth_sigma;
     if (a.samples_per_probe > 0)
       options.dataset.max_contact_samples_per_probe = a.samples_per_probe;
     if (a.max_validation_probes > 0) options.validation.max_probes = a.max_validation_probes;

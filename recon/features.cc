@@ -25,6 +25,9 @@ void DifferenceOptions::Check() const {
   if (gain_stride < 1 || gain_stride > 64) {
     Bad("DifferenceOptions.gain_stride", gain_stride, "in [1, 64]");
   }
+  if (!(smooth_sigma_px >= 0.0 && smooth_sigma_px <= 10.0)) {
+    Bad("DifferenceOptions.smooth_sigma_px", smooth_sigma_px, "in [0, 10]");
+  }
 }
 
 void ContactDetectionOptions::Check() const {
@@ -94,6 +97,27 @@ cv::Mat NormalizedDifference(const cv::Mat& frame, const cv::Mat& reference, con
       for (int c = 0; c < 3; ++c) {
         const float ref = g[c] * static_cast<float>(r[u][c]);
         o[u][c] = (static_cast<float>(f[u][c]) - ref) / (ref + floor);
+      }
+    }
+  }
+  if (options.smooth_sigma_px > 0.0) {
+    cv::Mat weight;
+    if (valid.empty()) {
+      weight = cv::Mat(out.size(), CV_32F, cv::Scalar::all(1.0));
+    } else {
+      valid.convertTo(weight, CV_32F, 1.0 / 255.0);
+      cv::threshold(weight, weight, 0.0, 1.0, cv::THRESH_BINARY);
+    }
+    cv::Mat blurred, wsum;
+    cv::GaussianBlur(out, blurred, cv::Size(), options.smooth_sigma_px);
+    cv::GaussianBlur(weight, wsum, cv::Size(), options.smooth_sigma_px);
+    for (int v = 0; v < out.rows; ++v) {
+      const float* w = weight.ptr<float>(v);
+      const float* ws = wsum.ptr<float>(v);
+      const auto* b = blurred.ptr<cv::Vec3f>(v);
+      auto* o = out.ptr<cv::Vec3f>(v);
+      for (int u = 0; u < out.cols; ++u) {
+        o[u] = (w[u] > 0.0f && ws[u] > 1e-6f) ? b[u] / ws[u] : cv::Vec3f(0, 0, 0);
       }
     }
   }

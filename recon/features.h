@@ -25,6 +25,10 @@ struct DifferenceOptions {
   bool compensate_gain = true;          // estimate g_c from the frame; otherwise g = 1
   double gain_min_reference_dn = 40.0;  // pixels used for the gain: reference above this
   int gain_stride = 4;                  // sample every n-th pixel in u and v for the median
+  // Gaussian smoothing of f over valid pixels (normalised convolution, so masked pixels do not
+  // pull their neighbours toward 0); 0 = none. Shot and read noise are per pixel, the imprint's
+  // colour changes spread over many pixels.
+  double smooth_sigma_px = 1.0;
   // Throws std::invalid_argument naming the field and its value.
   void Check() const;
 };

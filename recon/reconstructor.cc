@@ -72,7 +72,8 @@ Json ReconstructionOptionsToJson(const ReconstructionOptions& o) {
        {{"floor_dn", o.difference.floor_dn},
         {"compensate_gain", o.difference.compensate_gain},
         {"gain_min_reference_dn", o.difference.gain_min_reference_dn},
-        {"gain_stride", o.difference.gain_stride}}},
+        {"gain_stride", o.difference.gain_stride},
+        {"smooth_sigma_px", o.difference.smooth_sigma_px}}},
       {"detection",
        {{"blur_sigma_px", o.detection.blur_sigma_px},
         {"threshold", o.detection.threshold},
@@ -100,6 +101,7 @@ ReconstructionOptions ReconstructionOptionsFromJson(const Json& json, const std:
     r.Read("compensate_gain", &o.difference.compensate_gain);
     r.Read("gain_min_reference_dn", &o.difference.gain_min_reference_dn);
     r.Read("gain_stride", &o.difference.gain_stride);
+    r.Read("smooth_sigma_px", &o.difference.smooth_sigma_px);
     r.Finish();
   }
   if (const Json* j = root.Child("detection")) {

@@ -88,3 +88,34 @@ TEST_CASE("contact regions: blobs of change, largest first, grown rois", "[recon
   bad.threshold = -1;
   CHECK_THROWS_AS(DetectContactRegions(diff, bad), std::invalid_argument);
 }
+
+TEST_CASE("normalised difference smoothing lowers pixel noise and ignores masked pixels",
+          "[recon][features]") {
+  const cv::Mat ref(100, 100, CV_8UC3, cv::Scalar(100, 100, 100));
+  cv::Mat noise(ref.size(), CV_16SC3);
+  cv::theRNG().state = 5;
+  cv::randn(noise, cv::Scalar::all(0), cv::Scalar::all(3.0));
+  cv::Mat frame;
+  cv::add(ref, noise, frame, cv::noArray(), CV_8UC3);
+  cv::Mat valid(ref.size(), CV_8U, cv::Scalar(255));
+  valid(cv::Rect(0, 0, 50, 100)).setTo(0);  // left half masked
+  DifferenceOptions raw, smooth;
+  raw.smooth_sigma_px = 0.0;
+  raw.compensate_gain = smooth.compensate_gain = false;
+  smooth.smooth_sigma_px = 1.5;
+  auto stddev = [](const cv::Mat& m) {
+    cv::Scalar mean, sd;
+    cv::meanStdDev(m, mean, sd);
+    return sd[0];
+  };
+  const cv::Rect right(55, 5, 40, 90);
+  const cv::Mat a = NormalizedDifference(frame, ref, valid, raw)(right);
+  const cv::Mat b = NormalizedDifference(frame, ref, valid, smooth)(right);
+  CHECK(stddev(b) < 0.4 * stddev(a));
+  // A uniform change next to the mask border keeps its value (normalised convolution).
+  cv::Mat brighter;
+  ref.convertTo(brighter, CV_8UC3, 1.0, 30.0);
+  const cv::Mat c = NormalizedDifference(brighter, ref, valid, smooth);
+  CHECK(c.at<cv::Vec3f>(50, 50)[0] == Approx(30.0 / 130.0).epsilon(1e-4));
+  CHECK(c.at<cv::Vec3f>(50, 49)[0] == 0.0f);
+}
