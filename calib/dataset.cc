@@ -152,7 +152,6 @@ std::size_t AppendProbeSamples(const cv::Mat& diff, const ProbeRender& render, i
 
 namespace {
 Eigen::MatrixXf Columns(const Eigen::MatrixXf& m, const Dataset& d, Split s) {
-  std::vector<std::uint8_t> in(0);
   std::vector<std::int32_t> want = d.ProbesIn(s);
   std::sort(want.begin(), want.end());
   std::vector<Eigen::Index> cols;
