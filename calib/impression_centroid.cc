@@ -7,6 +7,8 @@
 
 #include <opencv2/imgproc.hpp>
 
+#include "capture/impression.h"
+
 namespace gs360 {
 
 void ImpressionCentroidOptions::Check() const {
@@ -27,26 +29,8 @@ std::optional<ImpressionRegion> FindImpressionRegion(const cv::Mat& press, const
                                                      const ImpressionCentroidOptions& options,
                                                      const cv::Mat& mask) {
   options.Check();
-  if (press.type() != CV_8UC3 || reference.type() != CV_8UC3 || press.size() != reference.size()) {
-    throw std::invalid_argument(
-        "FindImpressionRegion: press and reference must be CV_8UC3 of one size");
-  }
-  if (!mask.empty() && (mask.type() != CV_8U || mask.size() != press.size())) {
-    throw std::invalid_argument("FindImpressionRegion: mask must be CV_8U of the image size");
-  }
-  cv::Mat p, r;
-  press.convertTo(p, CV_32FC3);
-  reference.convertTo(r, CV_32FC3);
-  cv::Mat diff = p - r;
-  cv::Mat sq;
-  cv::multiply(diff, diff, sq);
-  cv::Mat magnitude;
-  cv::transform(sq, magnitude, cv::Matx13f(1.0f, 1.0f, 1.0f));
-  cv::sqrt(magnitude, magnitude);
-  if (!mask.empty()) magnitude.setTo(0.0f, mask == 0);
-  if (options.blur_sigma_px > 0.0) {
-    cv::GaussianBlur(magnitude, magnitude, cv::Size(), options.blur_sigma_px);
-  }
+  const cv::Mat magnitude =
+      DifferenceMagnitude(press, reference, mask, options.blur_sigma_px, "FindImpressionRegion");
   double peak = 0.0;
   cv::Point peak_at;
   cv::minMaxLoc(magnitude, nullptr, &peak, nullptr, &peak_at);

@@ -65,39 +65,12 @@ class ByteReader {
   std::string what_;
 };
 
-Json IntrinsicsJson(const FisheyeIntrinsics& k) {
-  return Json{{"width", k.width}, {"height", k.height}, {"fx", k.fx},
-              {"fy", k.fy},       {"cx", k.cx},         {"cy", k.cy},
-              {"skew", k.skew},   {"k", k.k},           {"max_theta", k.max_theta}};
-}
-
-FisheyeIntrinsics IntrinsicsFromJson(const Json& j) {
-  FisheyeIntrinsics k;
-  k.width = j.at("width").get<int>();
-  k.height = j.at("height").get<int>();
-  k.fx = j.at("fx").get<double>();
-  k.fy = j.at("fy").get<double>();
-  k.cx = j.at("cx").get<double>();
-  k.cy = j.at("cy").get<double>();
-  k.skew = j.at("skew").get<double>();
-  k.k = j.at("k").get<std::array<double, 4>>();
-  k.max_theta = j.at("max_theta").get<double>();
-  return k;
-}
-
-Json PoseJson(const Rigid3d& p) {
-  return Json{{"qw", p.rotation.w()},
-              {"qx", p.rotation.x()},
-              {"qy", p.rotation.y()},
-              {"qz", p.rotation.z()},
-              {"t", {p.translation.x(), p.translation.y(), p.translation.z()}}};
-}
-
-Rigid3d PoseFromJson(const Json& j) {
-  const auto t = j.at("t").get<std::array<double, 3>>();
-  return Rigid3d(Eigen::Quaterniond(j.at("qw").get<double>(), j.at("qx").get<double>(),
-                                    j.at("qy").get<double>(), j.at("qz").get<double>()),
-                 Eigen::Vector3d(t[0], t[1], t[2]));
+// A report file; a failed write (full disk, no permission) is an error naming the file.
+void WriteTextFile(const std::filesystem::path& path, const std::string& text) {
+  std::ofstream out(path, std::ios::trunc);
+  out << text;
+  out.flush();
+  if (!out) throw std::runtime_error("export: cannot write " + path.string());
 }
 
 void HashMesh(Hasher& h, const TriangleMesh& m) {
@@ -409,7 +382,7 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
   std::string intrinsics_key;
   {
     Hasher h;
-    h.Add("intrinsics/1").Add(IntrinsicsJson(inputs.nominal_intrinsics).dump());
+    h.Add("intrinsics/1").Add(IntrinsicsToJson(inputs.nominal_intrinsics).dump());
     std::vector<cv::Mat> images;
     for (const auto& path : inputs.checkerboard_images) {
       std::ifstream in(path, std::ios::binary);
@@ -438,7 +411,7 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
     const auto blob = runner.Run("intrinsics", intrinsics_key, [&](Json* metrics) {
       Json out;
       if (images.empty()) {
-        out = IntrinsicsJson(inputs.nominal_intrinsics);
+        out = IntrinsicsToJson(inputs.nominal_intrinsics);
         (*metrics)["source"] = "nominal (no checkerboard images given)";
       } else {
         IntrinsicsResult r;
@@ -447,7 +420,7 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
         } catch (const std::exception& e) {
           throw std::runtime_error(std::string("intrinsics: ") + e.what());
         }
-        out = IntrinsicsJson(r.intrinsics);
+        out = IntrinsicsToJson(r.intrinsics);
         (*metrics)["source"] = "checkerboards";
         (*metrics)["rms_px"] = r.rms_px;
         (*metrics)["images_used"] = r.used.size();
@@ -554,8 +527,8 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
           } catch (const std::exception& e) {
             throw std::runtime_error(std::string("pose: ") + e.what());
           }
-          Json out{{"cam_from_sensor", PoseJson(r.cam_from_sensor)},
-                   {"paper_cam_from_sensor", PoseJson(r.paper_cam_from_sensor)}};
+          Json out{{"cam_from_sensor", PoseToJson(r.cam_from_sensor)},
+                   {"paper_cam_from_sensor", PoseToJson(r.paper_cam_from_sensor)}};
           (*metrics)["observations"] = obs.size();
           (*metrics)["rms_px"] = r.rms_px;
           (*metrics)["paper_rms_px"] = r.paper_rms_px;
@@ -872,15 +845,8 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
           bundle.reconstruction = options.reconstruction;
           bundle.metrics = Json{{"run_id", run_id},
                                 {"validation", result.validation.value("results", Json::object())}};
-          const std::vector<std::uint8_t> bytes = SerializeModelBundle(bundle);
-          WriteModelBundle(result.model_path, bundle);
-          const std::vector<std::uint8_t> onnx = ExportMlpToOnnx(mlp, OnnxExportOptions{});
-          {
-            std::ofstream out(result.onnx_path, std::ios::binary | std::ios::trunc);
-            out.write(reinterpret_cast<const char*>(onnx.data()),
-                      static_cast<std::streamsize>(onnx.size()));
-            if (!out) throw std::runtime_error("export: cannot write " + result.onnx_path.string());
-          }
+          const std::vector<std::uint8_t> bytes = WriteModelBundle(result.model_path, bundle);
+          WriteOnnxFile(result.onnx_path, mlp);
           const auto existing = db.GetModel(name, version);
           if (!existing) {
             db.PutModel(name, version, bytes, Json{{"file", result.model_path.string()}}.dump(),
@@ -889,7 +855,7 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
           (*metrics)["model"] = result.model_path.string();
           (*metrics)["onnx"] = result.onnx_path.string();
           (*metrics)["bundle_bytes"] = bytes.size();
-          (*metrics)["onnx_bytes"] = onnx.size();
+          (*metrics)["onnx_bytes"] = std::filesystem::file_size(result.onnx_path);
           const std::string text = Json{{"model", result.model_path.string()}}.dump();
           return std::vector<std::uint8_t>(text.begin(), text.end());
         },
@@ -897,8 +863,8 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
         // The files are the product: write them again if someone deleted them.
         !std::filesystem::exists(result.model_path) || !std::filesystem::exists(result.onnx_path));
     std::filesystem::create_directories(dir);
-    std::ofstream(result.report_path) << html;
-    std::ofstream(result.validation_path) << result.validation.dump(2);
+    WriteTextFile(result.report_path, html);
+    WriteTextFile(result.validation_path, result.validation.dump(2));
   }
   result.seconds = Since(t_start);
   return result;

@@ -4,7 +4,6 @@
 #include <chrono>
 #include <cmath>
 #include <limits>
-#include <map>
 #include <random>
 #include <stdexcept>
 #include <thread>
@@ -27,7 +26,21 @@ struct BandErrors {
   std::vector<float> peak;    // mm, per probe
   std::int64_t probes = 0;
 };
-using Accumulator = std::map<std::string, BandErrors>;  // key "truth/method/band"
+// Bands by index: the per-pixel loop only adds to a fixed table (no keys built per pixel).
+const char* const kBands[] = {"all",        "height:base", "height:middle",
+                              "height:tip", "view:<30",    "view:30-50",
+                              "view:>50",   "fins:near",   "fins:far"};
+constexpr int kBandCount = 9;
+enum Band : int { kAll = 0, kHeightBase = 1, kViewLow = 4, kFinsNear = 7 };
+constexpr int kTruthCount = 2;
+// Indexed [truth][method][band].
+struct Accumulator {
+  std::vector<BandErrors> cells =
+      std::vector<BandErrors>(static_cast<std::size_t>(kTruthCount * kMethodCount * kBandCount));
+  BandErrors& at(int truth, int method, int band) {
+    return cells[static_cast<std::size_t>((truth * kMethodCount + method) * kBandCount + band)];
+  }
+};
 
 double Mean(const std::vector<float>& v) {
   if (v.empty()) return std::numeric_limits<double>::quiet_NaN();
@@ -48,9 +61,9 @@ Json Number(double v) {
   return std::isfinite(v) ? Json(v) : Json(nullptr);
 }
 
-std::string ViewBand(double angle_rad) {
+int ViewBand(double angle_rad) {
   const double deg = angle_rad * kRadToDeg;
-  return deg < 30.0 ? "view:<30" : (deg <= 50.0 ? "view:30-50" : "view:>50");
+  return kViewLow + (deg < 30.0 ? 0 : (deg <= 50.0 ? 1 : 2));
 }
 
 double AngleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
@@ -130,14 +143,12 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
       const ProbeRender render = RenderProbe(map, rec.camera(), c_cam, ball_radius);
       if (render.contact_pixels == 0) continue;
       const double z = probe.contact_point_sensor.z();
-      const std::string height =
-          z < gel_height_mm / 3.0
-              ? "height:base"
-              : (z < 2.0 * gel_height_mm / 3.0 ? "height:middle" : "height:tip");
+      const int height =
+          kHeightBase + (z < gel_height_mm / 3.0 ? 0 : (z < 2.0 * gel_height_mm / 3.0 ? 1 : 2));
       const bool near_fins =
           std::min(std::abs(probe.contact_point_sensor.x()),
                    std::abs(probe.contact_point_sensor.y())) < options.fin_near_mm;
-      const std::string fins = near_fins ? "fins:near" : "fins:far";
+      const int fins = near_fins ? kFinsNear : kFinsNear + 1;
       std::unique_ptr<ProbeSurfaceTruth> physical;
       if (truth != nullptr) physical = truth->ForProbe(probe.ball_center_sensor, ball_radius);
 
@@ -199,7 +210,7 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
           const Eigen::Vector3d n_r = (c_cam - x_r) / ball_radius;
           const bool inside = roi.contains(cv::Point(u, v));
           if (!inside) ++st.uncovered;
-          const std::string view = ViewBand(map.view_angle(u, v));
+          const int view = ViewBand(map.view_angle(u, v));
           for (int m = 0; m < kMethodCount; ++m) {
             double rho = map.rho0(u, v);
             Eigen::Vector3d n = map.normal0(u, v);
@@ -221,9 +232,8 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
                 normal_err = AngleDeg(sensor_from_cam.RotateDirection(n), n_t);
               }
               if (m == 0 && t == n_truths - 1) probe_error_sum += depth_err, ++probe_error_n;
-              const std::string prefix = std::string(kTruths[t]) + "/" + kMethods[m] + "/";
-              for (const std::string& band : {std::string("all"), height, view, fins}) {
-                BandErrors& e = st.acc[prefix + band];
+              for (const int band : {static_cast<int>(kAll), height, view, fins}) {
+                BandErrors& e = st.acc.at(t, m, band);
                 e.depth.push_back(static_cast<float>(depth_err));
                 e.normal.push_back(static_cast<float>(normal_err));
               }
@@ -234,9 +244,8 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
       for (int m = 0; m < kMethodCount; ++m) {
         const double peak = roi.empty() ? 0.0 : recs[m].peak_indentation_mm;
         for (int t = 0; t < n_truths; ++t) {
-          const std::string prefix = std::string(kTruths[t]) + "/" + kMethods[m] + "/";
-          for (const std::string& band : {std::string("all"), height, fins}) {
-            BandErrors& e = st.acc[prefix + band];
+          for (const int band : {static_cast<int>(kAll), height, fins}) {
+            BandErrors& e = st.acc.at(t, m, band);
             e.peak.push_back(static_cast<float>(std::abs(peak - truth_peak[t])));
             ++e.probes;
           }
@@ -294,8 +303,9 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
   std::vector<std::pair<int, ValidationExample>> examples;
   std::vector<std::pair<int, std::pair<Eigen::Vector3d, double>>> probe_errors;
   for (ThreadState& st : states) {
-    for (auto& [key, e] : st.acc) {
-      BandErrors& dst = acc[key];
+    for (std::size_t i = 0; i < st.acc.cells.size(); ++i) {
+      const BandErrors& e = st.acc.cells[i];
+      BandErrors& dst = acc.cells[i];
       dst.depth.insert(dst.depth.end(), e.depth.begin(), e.depth.end());
       dst.normal.insert(dst.normal.end(), e.normal.begin(), e.normal.end());
       dst.peak.insert(dst.peak.end(), e.peak.begin(), e.peak.end());
@@ -320,17 +330,20 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
   for (auto& e : probe_errors) result.probe_errors.push_back(e.second);
 
   Json results = Json::object();
-  for (const auto& [key, e] : acc) {
-    const auto s1 = key.find('/');
-    const auto s2 = key.find('/', s1 + 1);
-    const std::string t = key.substr(0, s1), m = key.substr(s1 + 1, s2 - s1 - 1),
-                      band = key.substr(s2 + 1);
-    results[t][m][band] = Json{{"pixels", e.depth.size()},
-                               {"probes", e.probes},
-                               {"mean_mm", Number(Mean(e.depth))},
-                               {"p95_mm", Number(Percentile(e.depth, 0.95))},
-                               {"median_normal_deg", Number(Percentile(e.normal, 0.5))},
-                               {"peak_error_mm", Number(Mean(e.peak))}};
+  for (int t = 0; t < n_truths; ++t) {
+    for (int m = 0; m < kMethodCount; ++m) {
+      for (int b = 0; b < kBandCount; ++b) {
+        const BandErrors& e = acc.at(t, m, b);
+        if (e.depth.empty() && e.probes == 0) continue;  // a band no probe fell in
+        results[kTruths[t]][kMethods[m]][kBands[b]] =
+            Json{{"pixels", e.depth.size()},
+                 {"probes", e.probes},
+                 {"mean_mm", Number(Mean(e.depth))},
+                 {"p95_mm", Number(Percentile(e.depth, 0.95))},
+                 {"median_normal_deg", Number(Percentile(e.normal, 0.5))},
+                 {"peak_error_mm", Number(Mean(e.peak))}};
+      }
+    }
   }
   const double evaluated = static_cast<double>(held_out.size());
   result.report = Json{

@@ -22,14 +22,14 @@ void ImpressionOptions::Check() const {
   }
 }
 
-std::optional<Impression> FindImpression(const cv::Mat& press, const cv::Mat& reference,
-                                         const ImpressionOptions& options, const cv::Mat& mask) {
-  options.Check();
+cv::Mat DifferenceMagnitude(const cv::Mat& press, const cv::Mat& reference, const cv::Mat& mask,
+                            double blur_sigma_px, const char* caller) {
   if (press.type() != CV_8UC3 || reference.type() != CV_8UC3 || press.size() != reference.size()) {
-    throw std::invalid_argument("FindImpression: press and reference must be CV_8UC3 of one size");
+    throw std::invalid_argument(std::string(caller) +
+                                ": press and reference must be CV_8UC3 of one size");
   }
   if (!mask.empty() && (mask.type() != CV_8U || mask.size() != press.size())) {
-    throw std::invalid_argument("FindImpression: mask must be CV_8U of the image size");
+    throw std::invalid_argument(std::string(caller) + ": mask must be CV_8U of the image size");
   }
   cv::Mat p, r;
   press.convertTo(p, CV_32FC3);
@@ -37,14 +37,19 @@ std::optional<Impression> FindImpression(const cv::Mat& press, const cv::Mat& re
   cv::Mat diff = p - r;
   cv::Mat sq;
   cv::multiply(diff, diff, sq);
-  cv::Mat magnitude = sq.reshape(1, static_cast<int>(sq.total())).clone();
-  cv::reduce(magnitude, magnitude, 1, cv::REDUCE_SUM);
-  magnitude = magnitude.reshape(1, press.rows);
+  cv::Mat magnitude;
+  cv::transform(sq, magnitude, cv::Matx13f(1.0f, 1.0f, 1.0f));  // sum of the three channels
   cv::sqrt(magnitude, magnitude);
   if (!mask.empty()) magnitude.setTo(0.0f, mask == 0);
-  if (options.blur_sigma_px > 0.0) {
-    cv::GaussianBlur(magnitude, magnitude, cv::Size(), options.blur_sigma_px);
-  }
+  if (blur_sigma_px > 0.0) cv::GaussianBlur(magnitude, magnitude, cv::Size(), blur_sigma_px);
+  return magnitude;
+}
+
+std::optional<Impression> FindImpression(const cv::Mat& press, const cv::Mat& reference,
+                                         const ImpressionOptions& options, const cv::Mat& mask) {
+  options.Check();
+  const cv::Mat magnitude =
+      DifferenceMagnitude(press, reference, mask, options.blur_sigma_px, "FindImpression");
   double peak = 0.0;
   cv::Point peak_at;
   cv::minMaxLoc(magnitude, nullptr, &peak, nullptr, &peak_at);

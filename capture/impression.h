@@ -24,6 +24,13 @@ struct Impression {
   cv::Rect box;          // blob bounding box
 };
 
+// The blurred colour-difference magnitude both impression finders start from: per pixel
+// |press - reference| over the three channels (DN), 0 where `mask` is 0, then a Gaussian blur of
+// blur_sigma_px (none if 0). CV_32F. Throws std::invalid_argument, naming `caller`, for inputs
+// that are not CV_8UC3 of one size or a mask that is not CV_8U of that size.
+cv::Mat DifferenceMagnitude(const cv::Mat& press, const cv::Mat& reference, const cv::Mat& mask,
+                            double blur_sigma_px, const char* caller);
+
 // `press` and `reference`: CV_8UC3 of equal size (std::invalid_argument otherwise). Optional
 // `mask` (CV_8U, non-zero = usable pixel, e.g. not behind a fin). Returns nullopt when no blob
 // reaches min_peak_dn: no contact visible.

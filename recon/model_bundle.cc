@@ -124,6 +124,12 @@ TriangleMesh MeshFromBytes(std::span<const std::uint8_t> bytes, const std::strin
   return mesh;
 }
 
+std::span<const std::uint8_t> AsBytes(const std::string& s) {
+  return {reinterpret_cast<const std::uint8_t*>(s.data()), s.size()};
+}
+
+}  // namespace
+
 Json IntrinsicsToJson(const FisheyeIntrinsics& k) {
   return Json{{"width", k.width}, {"height", k.height}, {"fx", k.fx},
               {"fy", k.fy},       {"cx", k.cx},         {"cy", k.cy},
@@ -158,12 +164,6 @@ Rigid3d PoseFromJson(const Json& j) {
                                     j.at("qy").get<double>(), j.at("qz").get<double>()),
                  Eigen::Vector3d(t[0], t[1], t[2]));
 }
-
-std::span<const std::uint8_t> AsBytes(const std::string& s) {
-  return {reinterpret_cast<const std::uint8_t*>(s.data()), s.size()};
-}
-
-}  // namespace
 
 Reconstructor ModelBundle::MakeReconstructor(int threads) const {
   const FisheyeCamera camera(intrinsics);
@@ -298,7 +298,8 @@ ModelBundle DeserializeModelBundle(std::span<const std::uint8_t> bytes, const st
   return b;
 }
 
-void WriteModelBundle(const std::filesystem::path& path, const ModelBundle& bundle) {
+std::vector<std::uint8_t> WriteModelBundle(const std::filesystem::path& path,
+                                           const ModelBundle& bundle) {
   const std::vector<std::uint8_t> bytes = SerializeModelBundle(bundle);
   std::filesystem::path tmp = path;
   tmp += ".tmp";
@@ -317,6 +318,7 @@ void WriteModelBundle(const std::filesystem::path& path, const ModelBundle& bund
   std::error_code ec;
   std::filesystem::rename(tmp, path, ec);
   if (ec) throw ModelBundleError(path.string() + ": cannot rename into place: " + ec.message());
+  return bytes;
 }
 
 ModelBundle ReadModelBundle(const std::filesystem::path& path) {

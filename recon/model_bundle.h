@@ -61,11 +61,20 @@ struct ModelBundle {
   Reconstructor MakeReconstructor(int threads = 2) const;
 };
 
+// The JSON forms the bundle's meta.json uses (also the calibration artifacts'). FromJson throws
+// nlohmann::json exceptions for missing keys or wrong types.
+nlohmann::json IntrinsicsToJson(const FisheyeIntrinsics& intrinsics);
+FisheyeIntrinsics IntrinsicsFromJson(const nlohmann::json& json);
+nlohmann::json PoseToJson(const Rigid3d& pose);  // quaternion qw qx qy qz, translation t (mm)
+Rigid3d PoseFromJson(const nlohmann::json& json);
+
 std::vector<std::uint8_t> SerializeModelBundle(const ModelBundle& bundle);
 // `where` names the source (a file path) in error messages.
 ModelBundle DeserializeModelBundle(std::span<const std::uint8_t> bytes, const std::string& where);
-// Writes atomically (temporary file + rename). Throws ModelBundleError naming the path.
-void WriteModelBundle(const std::filesystem::path& path, const ModelBundle& bundle);
+// Writes atomically (temporary file + rename) and returns the bytes written. Throws
+// ModelBundleError naming the path.
+std::vector<std::uint8_t> WriteModelBundle(const std::filesystem::path& path,
+                                           const ModelBundle& bundle);
 ModelBundle ReadModelBundle(const std::filesystem::path& path);
 
 }  // namespace gs360

@@ -107,6 +107,29 @@ inline PressScene RenderPress(const SurfaceMap& map, const FisheyeCamera& camera
 
 // A vertical open cylinder of `radius` around the sensor z axis, from z = 0 to `height`, with
 // exact outward normals; fine in azimuth (its chord sag is radius (1 - cos(pi / segments))).
+// UV sphere with exact outward vertex normals.
+inline TriangleMesh Sphere(const Eigen::Vector3d& c, double radius, int segments, int rings) {
+  TriangleMesh m;
+  for (int i = 0; i <= rings; ++i) {
+    const double th = std::numbers::pi * i / rings;
+    for (int j = 0; j < segments; ++j) {
+      const double ph = 2.0 * std::numbers::pi * j / segments;
+      const Eigen::Vector3d n(std::sin(th) * std::cos(ph), std::sin(th) * std::sin(ph),
+                              std::cos(th));
+      m.vertices.push_back(c + radius * n);
+      m.normals.push_back(n);
+    }
+  }
+  for (int i = 0; i < rings; ++i) {
+    for (int j = 0; j < segments; ++j) {
+      const int a = i * segments + j, b = i * segments + (j + 1) % segments;
+      if (i > 0) m.triangles.emplace_back(a, a + segments, b);
+      if (i + 1 < rings) m.triangles.emplace_back(b, a + segments, b + segments);
+    }
+  }
+  return m;
+}
+
 inline TriangleMesh DenseCylinder(double radius, double height, int segments, int rings) {
   TriangleMesh m;
   for (int i = 0; i <= rings; ++i) {

@@ -51,28 +51,6 @@ TriangleMesh Plate(double z, double half) {
   return m;
 }
 
-TriangleMesh Sphere(const Eigen::Vector3d& c, double radius, int segments, int rings) {
-  TriangleMesh m;
-  for (int i = 0; i <= rings; ++i) {
-    const double th = std::numbers::pi * i / rings;
-    for (int j = 0; j < segments; ++j) {
-      const double ph = 2.0 * std::numbers::pi * j / segments;
-      const Eigen::Vector3d n(std::sin(th) * std::cos(ph), std::sin(th) * std::sin(ph),
-                              std::cos(th));
-      m.vertices.push_back(c + radius * n);
-      m.normals.push_back(n);
-    }
-  }
-  for (int i = 0; i < rings; ++i) {
-    for (int j = 0; j < segments; ++j) {
-      const int a = i * segments + j, b = i * segments + (j + 1) % segments;
-      if (i > 0) m.triangles.emplace_back(a, a + segments, b);
-      if (i + 1 < rings) m.triangles.emplace_back(b, a + segments, b + segments);
-    }
-  }
-  return m;
-}
-
 struct Both {
   testing::PressErrors poisson, da;
 };
@@ -210,7 +188,7 @@ TEST_CASE("A dent in a sphere seen from inside: both integrators < 0.01 mm", "[i
   const FisheyeCamera camera;
   const Eigen::Vector3d centre(0.0, 0.0, 2.0);
   const double radius = 12.0;
-  const Bvh sphere(Sphere(centre, radius, 1024, 512));
+  const Bvh sphere(testing::Sphere(centre, radius, 1024, 512));
   const SurfaceMap map = SurfaceMap::Build(camera, Rigid3d::Identity(), sphere, nullptr);
   const double r = 2.0, depth = 0.6;
   for (const double polar : {10.0, 25.0}) {

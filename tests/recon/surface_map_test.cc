@@ -10,6 +10,7 @@
 #include "geometry/bvh.h"
 #include "geometry/fisheye.h"
 #include "geometry/shapes.h"
+#include "tests/recon/integration_scene.h"
 
 namespace gs360 {
 namespace {
@@ -23,30 +24,6 @@ TriangleMesh Plate(double z, double half) {
   // (v1 - v0) x (v2 - v0) must be -z: wind clockwise seen from -z... (0,1,2) gives +z, so flip.
   m.triangles = {{0, 2, 1}, {0, 3, 2}};
   m.normals.assign(4, Eigen::Vector3d(0, 0, -1));
-  return m;
-}
-
-// UV sphere with exact vertex normals (outward).
-TriangleMesh Sphere(const Eigen::Vector3d& c, double radius, int segments, int rings) {
-  TriangleMesh m;
-  for (int i = 0; i <= rings; ++i) {
-    const double th = std::numbers::pi * i / rings;
-    for (int j = 0; j < segments; ++j) {
-      const double ph = 2.0 * std::numbers::pi * j / segments;
-      const Eigen::Vector3d n(std::sin(th) * std::cos(ph), std::sin(th) * std::sin(ph),
-                              std::cos(th));
-      m.vertices.push_back(c + radius * n);
-      m.normals.push_back(n);
-    }
-  }
-  for (int i = 0; i < rings; ++i) {
-    for (int j = 0; j < segments; ++j) {
-      const int a = i * segments + j, b = i * segments + (j + 1) % segments;
-      const int c2 = a + segments, d = b + segments;
-      if (i > 0) m.triangles.emplace_back(a, c2, b);
-      if (i + 1 < rings) m.triangles.emplace_back(b, c2, d);
-    }
-  }
   return m;
 }
 
@@ -146,7 +123,7 @@ TEST_CASE("Surface map from inside a sphere matches the analytic sphere", "[surf
   const FisheyeCamera camera;
   const Eigen::Vector3d centre(1.0, -2.0, 6.0);  // sensor frame
   const double radius = 15.0;
-  const Bvh sphere(Sphere(centre, radius, 384, 192));
+  const Bvh sphere(gs360::testing::Sphere(centre, radius, 384, 192));
   // A rotated, translated camera: tests the frame handling.
   const Rigid3d cam_from_sensor =
       Rigid3d::FromAxisAngle(Eigen::Vector3d(0.3, -0.2, 1.0), 0.4, Eigen::Vector3d(0.5, 1.0, -2.0));
