@@ -19,6 +19,7 @@
 
 #include "geometry/bvh.h"
 #include "geometry/shapes.h"
+#include "recon/height_field.h"
 #include "recon/integration.h"
 #include "recon/surface_map.h"
 #include "tests/recon/integration_scene.h"
@@ -35,6 +36,7 @@ struct Band {
   int n = 0;
   double view = 0, p_rho = 0, d_rho = 0, p_p2s = 0, d_p2s = 0, p_roi = 0, d_roi = 0;
   double p_ms = 0, d_ms = 0, px = 0;
+  double h_p2s = 0, h_roi = 0, h_ms = 0;
 };
 
 }  // namespace
@@ -43,6 +45,8 @@ int main(int argc, char** argv) {
   double depth = 1.0;
   bool verbose = false;
   IntegrationOptions da;
+  HeightFieldOptions hf;
+  bool hf_init = false;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto value = [&]() { return i + 1 < argc ? std::atof(argv[++i]) : -1.0; };
@@ -54,6 +58,10 @@ int main(int argc, char** argv) {
       da.sharpness = value();
     } else if (a == "--scale") {
       da.scale = value();
+    } else if (a == "--hf-iterations") {
+      hf.iterations = static_cast<int>(value());
+    } else if (a == "--hf-init") {
+      hf_init = true;
     } else if (a == "--verbose") {
       verbose = true;
     } else {
@@ -126,6 +134,35 @@ int main(int argc, char** argv) {
       const double d_s = Seconds(t0);
       const testing::PressErrors ep = testing::MeasurePress(map, s, rp.rho, &wall);
       const testing::PressErrors ed = testing::MeasurePress(map, s, rd.rho, &wall);
+      cv::Mat slopes(s.roi.size(), CV_32FC2, cv::Scalar::all(0));
+      for (int y = 0; y < s.roi.height; ++y) {
+        for (int x = 0; x < s.roi.width; ++x) {
+          const cv::Vec3d nn = s.normals.at<cv::Vec3d>(y, x);
+          if (!std::isfinite(nn[0])) continue;
+          const Eigen::Vector2d gs =
+              map.SlopesFromNormal(s.roi.x + x, s.roi.y + y, Eigen::Vector3d(nn[0], nn[1], nn[2]));
+          slopes.at<cv::Vec2f>(y, x) =
+              cv::Vec2f(static_cast<float>(gs.x()), static_cast<float>(gs.y()));
+        }
+      }
+      t0 = std::chrono::steady_clock::now();
+      cv::Mat h0;
+      if (hf_init) {
+        const IntegrationResult rp0 = IntegrateLogDepth(map, g, poisson);
+        h0 = cv::Mat(s.roi.size(), CV_64F, cv::Scalar::all(0.0));
+        for (int y = 0; y < s.roi.height; ++y) {
+          for (int x = 0; x < s.roi.width; ++x) {
+            const int u = s.roi.x + x, v = s.roi.y + y;
+            const double rr = rp0.rho.at<double>(y, x);
+            if (!map.visible(u, v) || !std::isfinite(rr)) continue;
+            h0.at<double>(y, x) =
+                (map.rho0(u, v) - rr) * std::abs(map.ray(u, v).dot(map.normal0(u, v)));
+          }
+        }
+      }
+      const HeightFieldResult rh = IntegrateHeightField(map, camera, s.roi, slopes, hf, h0);
+      const double h_s = Seconds(t0);
+      const testing::PressErrors eh = testing::MeasurePress(map, s, rh.rho, &wall);
       const int band = ep.view_angle_deg < 30 ? 0 : ep.view_angle_deg <= 50 ? 1 : 2;
       Band& b = bands[band];
       ++b.n;
@@ -135,6 +172,7 @@ int main(int argc, char** argv) {
       b.p_roi += ep.roi_p2s, b.d_roi += ed.roi_p2s;
       b.p_ms += 1e3 * p_s, b.d_ms += 1e3 * d_s;
       b.px += s.roi.area();
+      b.h_p2s += eh.contact_p2s, b.h_roi += eh.roi_p2s, b.h_ms += 1e3 * h_s;
       if (verbose) {
         std::printf("%6.1f %6.0f %5d %3dx%-3d | %9.4f %9.4f | %9.4f %9.4f | %8.2f %8.2f  it %d\n",
                     ep.view_angle_deg, az_deg, s.contact_pixels, s.roi.width, s.roi.height,
@@ -153,6 +191,12 @@ int main(int argc, char** argv) {
   std::printf("%-12s %4s %6s | %9s %9s | %9s %9s | %9s %9s | %8s %8s %8s\n", "band", "n", "view",
               "P rho", "DA rho", "P p2s", "DA p2s", "P roi", "DA roi", "roi px", "P ms", "DA ms");
   const char* names[] = {"< 30 deg", "30-50 deg", "> 50 deg"};
+  std::printf("height field (HF, iterations %d):\n%-12s | %9s %9s %8s\n", hf.iterations, "band",
+              "HF p2s", "HF roi", "HF ms");
+  for (auto& [k, b] : bands) {
+    std::printf("%-12s | %9.4f %9.4f %8.2f\n", names[k], b.h_p2s / b.n, b.h_roi / b.n,
+                b.h_ms / b.n);
+  }
   for (auto& [k, b] : bands) {
     const double n = b.n;
     std::printf("%-12s %4d %6.1f | %9.4f %9.4f | %9.4f %9.4f | %9.4f %9.4f | %8.0f %8.2f %8.2f\n",

@@ -67,6 +67,9 @@ void DatasetOptions::Check() const {
   }
   if (!(test_fraction > 0.0 && test_fraction < 0.5))
     Bad("test_fraction", test_fraction, "in (0, 0.5)");
+  if (!(edge_exclusion_mm >= 0.0 && edge_exclusion_mm <= 2.0)) {
+    Bad("edge_exclusion_mm", edge_exclusion_mm, "in [0, 2] mm");
+  }
 }
 
 std::vector<Split> SplitProbes(std::span<const std::int32_t> probes,
@@ -100,14 +103,22 @@ std::vector<Split> SplitProbes(std::span<const std::int32_t> probes,
 }
 
 std::size_t AppendProbeSamples(const cv::Mat& diff, const ProbeRender& render, int plan_index,
-                               const DatasetOptions& options, Dataset* out) {
+                               const DatasetOptions& options, Dataset* out,
+                               const cv::Mat& penetration) {
   if (render.contact_pixels < options.min_contact_pixels || render.roi.empty()) return 0;
   if (diff.type() != CV_32FC3)
     throw std::invalid_argument("AppendProbeSamples: diff must be CV_32FC3");
+  const bool exclude_edge = options.edge_exclusion_mm > 0.0;
+  if (exclude_edge && (penetration.type() != CV_32F || penetration.size() != render.roi.size())) {
+    throw std::invalid_argument(
+        "AppendProbeSamples: edge_exclusion_mm > 0 needs the roi's penetration map (CV_32F)");
+  }
+  const float edge = static_cast<float>(options.edge_exclusion_mm);
   std::vector<cv::Point> contact, other;
   for (int y = 0; y < render.roi.height; ++y) {
     for (int x = 0; x < render.roi.width; ++x) {
       if (std::isnan(render.rho.at<double>(y, x))) continue;  // not visible
+      if (exclude_edge && std::abs(penetration.at<float>(y, x)) < edge) continue;
       (render.contact.at<std::uint8_t>(y, x) ? contact : other).emplace_back(x, y);
     }
   }

@@ -32,6 +32,12 @@ struct DatasetOptions {
   double validation_fraction = 0.1;  // of the probes
   double test_fraction = 0.1;        // of the probes (held out for the validate stage)
   std::uint64_t seed = 1;
+  // Pixels whose rigid penetration along the normal (calib/render.h NormalPenetration) is within
+  // this of zero are left out, inside and outside the imprint: a real gel rounds the imprint's
+  // edge off over a fraction of a millimetre, so there the rigid render's slopes (steepest just
+  // inside, zero just outside) contradict what the camera sees, and fitting them pulls every
+  // prediction toward the mean. 0 keeps every pixel. [0, 2] mm.
+  double edge_exclusion_mm = 0.0;
   void Check() const;  // throws std::invalid_argument naming the field and value
 };
 
@@ -57,9 +63,12 @@ struct Dataset {
 // Samples of one probe: `diff` is the full-image normalised difference (CV_32FC3, B G R),
 // `render` the probe's rigid render. Appends to `out` (x, y, probe, contact); returns the number
 // of samples added (0 when the render has fewer than min_contact_pixels). Deterministic for
-// (options.seed, plan_index).
+// (options.seed, plan_index). `penetration`: the render roi's NormalPenetration (CV_32F,
+// roi-sized), needed when options.edge_exclusion_mm > 0 (std::invalid_argument if missing or
+// of the wrong size).
 std::size_t AppendProbeSamples(const cv::Mat& diff, const ProbeRender& render, int plan_index,
-                               const DatasetOptions& options, Dataset* out);
+                               const DatasetOptions& options, Dataset* out,
+                               const cv::Mat& penetration = cv::Mat());
 
 // Seeded split of plan indices (in the given order) into train / validation / test. Every split
 // gets at least one probe when there are >= 3 probes.

@@ -631,6 +631,7 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
     h.AddPod(d.max_contact_samples_per_probe).AddDouble(d.non_contact_fraction);
     h.AddPod(d.min_contact_pixels).AddDouble(d.validation_fraction).AddDouble(d.test_fraction);
     h.AddPod(d.seed);
+    if (d.edge_exclusion_mm > 0.0) h.Add("edge").AddDouble(d.edge_exclusion_mm);
     h.Add(ReconstructionOptionsToJson(options.reconstruction).at("difference").dump());
     dataset_key = h.Hex();
     const auto blob = runner.Run("dataset", dataset_key, [&](Json* metrics) {
@@ -649,7 +650,14 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
             const cv::Mat ref = fl.Reference(conn, probes[k]);
             const cv::Mat diff =
                 NormalizedDifference(press, ref, visible, options.reconstruction.difference);
-            AppendProbeSamples(diff, it->second, probes[k].plan_index, options.dataset, &parts[k]);
+            cv::Mat penetration;
+            if (options.dataset.edge_exclusion_mm > 0.0) {
+              penetration = NormalPenetration(*map, it->second.roi,
+                                              result.cam_from_sensor * probes[k].ball_sensor,
+                                              inputs.ball_radius);
+            }
+            AppendProbeSamples(diff, it->second, probes[k].plan_index, options.dataset, &parts[k],
+                               penetration);
           });
       Dataset all;
       std::size_t n = 0;

@@ -180,4 +180,37 @@ ProbeRender RenderProbe(const SurfaceMap& map, const FisheyeCamera& camera,
   return out;
 }
 
+cv::Mat NormalPenetration(const SurfaceMap& map, const cv::Rect& roi,
+                          const Eigen::Vector3d& ball_center_cam, double ball_radius) {
+  if (!(ball_radius > 0.0) || !std::isfinite(ball_radius)) {
+    throw std::invalid_argument("NormalPenetration: ball_radius must be finite and > 0, got " +
+                                std::to_string(ball_radius));
+  }
+  const cv::Rect r = roi & cv::Rect(0, 0, map.width(), map.height());
+  cv::Mat out(r.size(), CV_32F, cv::Scalar::all(std::numeric_limits<float>::quiet_NaN()));
+  const double r2 = ball_radius * ball_radius;
+  for (int y = 0; y < r.height; ++y) {
+    for (int x = 0; x < r.width; ++x) {
+      const int u = r.x + x, v = r.y + y;
+      if (!map.visible(u, v)) continue;
+      const Eigen::Vector3d q = map.point0(u, v) - ball_center_cam;
+      const Eigen::Vector3d n0 = map.normal0(u, v);
+      // x0 - s n0 is inside the ball for s^2 - 2 s (q.n0) + |q|^2 - r^2 < 0; x0 + g n0 reaches
+      // its surface at g^2 + 2 g (q.n0) + |q|^2 - r^2 = 0. Same discriminant.
+      const double b = q.dot(n0), disc = b * b - q.squaredNorm() + r2;
+      double p;
+      if (disc < 0.0) {
+        p = -(q.norm() - ball_radius);  // the line misses the ball
+      } else if (q.squaredNorm() <= r2) {
+        p = b + std::sqrt(disc);  // inside: move along -n0 until the far root is passed
+      } else {
+        const double s_near = -b - std::sqrt(disc);  // outside: first root along +n0
+        p = s_near >= 0.0 ? -s_near : -(q.norm() - ball_radius);
+      }
+      out.at<float>(y, x) = static_cast<float>(p);
+    }
+  }
+  return out;
+}
+
 }  // namespace gs360

@@ -51,4 +51,14 @@ ProbeRender RenderProbe(const SurfaceMap& map, const FisheyeCamera& camera,
                         const Eigen::Vector3d& ball_center_cam, double ball_radius,
                         const ProbeRenderOptions& options = {});
 
+// Signed penetration of the ball along each pixel's surface normal line (mm), over `roi`
+// (CV_32F, roi-sized): for the undeformed point x0 with normal n0, the distance x0 must move
+// along -n0 to leave the ball (> 0: the rigid imprint's depth there), or minus the gap along +n0
+// to the ball (< 0; |x0 - c| - r where the normal line misses the ball). NaN where the map has no
+// visible surface. It says how far a pixel is from the rigid imprint's edge, where a real gel
+// rounds the imprint off (the dataset stage leaves that band out). Ball centre in the camera
+// frame; roi is clipped to the map; std::invalid_argument for a radius <= 0.
+cv::Mat NormalPenetration(const SurfaceMap& map, const cv::Rect& roi,
+                          const Eigen::Vector3d& ball_center_cam, double ball_radius);
+
 }  // namespace gs360

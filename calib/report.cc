@@ -132,7 +132,9 @@ std::vector<Table> BuildTables(const Json& validation, std::string* primary_out)
 }
 
 std::string MethodShort(const std::string& m) {
-  return m == "discontinuity" ? "disc." : m.substr(0, 7);
+  if (m == "discontinuity") return "disc.";
+  if (m == "heightfield") return "hfield";
+  return m.substr(0, 7);
 }
 
 std::string SummaryLine(const Json& v) {

@@ -16,14 +16,21 @@ constexpr double kRadToDeg = 180.0 / 3.14159265358979323846;
 const char* const kTruths[] = {"rigid", "physical"};
 // The third "method" integrates the rigid render's own slopes with the default integrator: the
 // error the integration alone leaves, with perfect slopes (a diagnostic of the MLP's share).
-const char* const kMethods[] = {"discontinuity", "poisson", "render_slopes"};
-constexpr int kMethodCount = 3;
+// The three integrators on the MLP's slopes, then the diagnostic: the default integrator on the
+// rigid render's exact slopes (separates integration error from slope error).
+const char* const kMethods[] = {"heightfield", "discontinuity", "poisson", "render_slopes"};
+constexpr int kMethodCount = 4;
+constexpr int kRenderSlopes = 3;
+constexpr IntegrationMethod kMethodIds[] = {IntegrationMethod::kHeightField,
+                                            IntegrationMethod::kDiscontinuityAware,
+                                            IntegrationMethod::kPoisson};
 
 // Errors of one (truth, method) pair, per band.
 struct BandErrors {
-  std::vector<float> depth;   // mm, per pixel
-  std::vector<float> normal;  // deg, per pixel
-  std::vector<float> peak;    // mm, per probe
+  std::vector<float> depth;        // mm, per pixel
+  std::vector<float> normal;       // deg, per pixel
+  std::vector<float> peak;         // mm, per probe: |reconstructed - true peak indentation|
+  std::vector<float> peak_signed;  // mm, per probe: reconstructed - true (< 0: too shallow)
   std::int64_t probes = 0;
 };
 // Bands by index: the per-pixel loop only adds to a fixed table (no keys built per pixel).
@@ -110,17 +117,21 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
   const Rigid3d& cam_from_sensor = map.cam_from_sensor();
   const Rigid3d sensor_from_cam = cam_from_sensor.Inverse();
   const int n_truths = truth != nullptr ? 2 : 1;
-  IntegrationOptions methods[kMethodCount] = {rec.options().integration, rec.options().integration,
-                                              rec.options().integration};
-  methods[0].method = IntegrationMethod::kDiscontinuityAware;
-  methods[1].method = IntegrationMethod::kPoisson;
-  methods[2].method = IntegrationMethod::kDiscontinuityAware;
+  IntegrationOptions methods[kMethodCount];
+  const IntegrationMethod default_method = rec.options().integration.method;
+  int default_index = 0, poisson_index = 0;
+  for (int m = 0; m < kMethodCount; ++m) {
+    methods[m] = rec.options().integration;
+    if (m != kRenderSlopes) methods[m].method = kMethodIds[m];
+    if (m != kRenderSlopes && kMethodIds[m] == default_method) default_index = m;
+    if (m != kRenderSlopes && kMethodIds[m] == IntegrationMethod::kPoisson) poisson_index = m;
+  }
 
   struct ThreadState {
     Accumulator acc;
     std::int64_t missed = 0, contact_pixels = 0, uncovered = 0;
     std::int64_t roi_pixels = 0, roi_max = 0, rois = 0;
-    double mlp_s = 0.0, integration_s[kMethodCount] = {0.0, 0.0, 0.0};
+    double mlp_s = 0.0, integration_s[kMethodCount] = {};
     std::vector<std::pair<int, ValidationExample>> examples;
     std::vector<std::pair<int, std::pair<Eigen::Vector3d, double>>> probe_errors;
   };
@@ -191,7 +202,7 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
           }
         }
         for (int m = 0; m < kMethodCount; ++m) {
-          recs[m] = rec.IntegrateSlopes(m == 2 ? oracle : slopes, *region, methods[m]);
+          recs[m] = rec.IntegrateSlopes(m == kRenderSlopes ? oracle : slopes, *region, methods[m]);
           st.integration_s[m] += recs[m].integration_seconds;
         }
       }
@@ -247,6 +258,7 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
           for (const int band : {static_cast<int>(kAll), height, fins}) {
             BandErrors& e = st.acc.at(t, m, band);
             e.peak.push_back(static_cast<float>(std::abs(peak - truth_peak[t])));
+            e.peak_signed.push_back(static_cast<float>(peak - truth_peak[t]));
             ++e.probes;
           }
         }
@@ -279,8 +291,8 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
               }
             }
             if (roi.contains(cv::Point(u, v))) {
-              const double a = recs[0].indentation.at<double>(v - roi.y, u - roi.x);
-              const double b = recs[1].indentation.at<double>(v - roi.y, u - roi.x);
+              const double a = recs[default_index].indentation.at<double>(v - roi.y, u - roi.x);
+              const double b = recs[poisson_index].indentation.at<double>(v - roi.y, u - roi.x);
               if (std::isfinite(a)) ex.recon_depth.at<double>(v - clipped.y, u - clipped.x) = a;
               if (std::isfinite(b)) ex.poisson_depth.at<double>(v - clipped.y, u - clipped.x) = b;
             }
@@ -299,7 +311,7 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
   Accumulator acc;
   ValidationResult result;
   std::int64_t missed = 0, contact_pixels = 0, uncovered = 0, roi_pixels = 0, roi_max = 0, rois = 0;
-  double mlp_s = 0.0, integ_s[kMethodCount] = {0.0, 0.0, 0.0};
+  double mlp_s = 0.0, integ_s[kMethodCount] = {};
   std::vector<std::pair<int, ValidationExample>> examples;
   std::vector<std::pair<int, std::pair<Eigen::Vector3d, double>>> probe_errors;
   for (ThreadState& st : states) {
@@ -309,6 +321,7 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
       dst.depth.insert(dst.depth.end(), e.depth.begin(), e.depth.end());
       dst.normal.insert(dst.normal.end(), e.normal.begin(), e.normal.end());
       dst.peak.insert(dst.peak.end(), e.peak.begin(), e.peak.end());
+      dst.peak_signed.insert(dst.peak_signed.end(), e.peak_signed.begin(), e.peak_signed.end());
       dst.probes += e.probes;
     }
     missed += st.missed;
@@ -341,11 +354,18 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
                  {"mean_mm", Number(Mean(e.depth))},
                  {"p95_mm", Number(Percentile(e.depth, 0.95))},
                  {"median_normal_deg", Number(Percentile(e.normal, 0.5))},
-                 {"peak_error_mm", Number(Mean(e.peak))}};
+                 {"peak_error_mm", Number(Mean(e.peak))},
+                 {"peak_bias_mm", Number(Mean(e.peak_signed))}};
       }
     }
   }
   const double evaluated = static_cast<double>(held_out.size());
+  Json ms_per_probe{{"mlp", evaluated > 0 ? 1000.0 * mlp_s / evaluated : 0.0}};
+  for (int m = 0; m < kMethodCount; ++m) {
+    if (m == kRenderSlopes) continue;
+    ms_per_probe[std::string("integration_") + kMethods[m]] =
+        evaluated > 0 ? 1000.0 * integ_s[m] / evaluated : 0.0;
+  }
   result.report = Json{
       {"probes_held_out", held_out_all.size()},
       {"probes_evaluated", held_out.size()},
@@ -357,14 +377,11 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
       {"roi_pixels_max", roi_max},
       {"truths", n_truths == 2 ? Json{"rigid", "physical"} : Json{"rigid"}},
       {"truth_description", truth != nullptr ? truth->Describe() : std::string()},
-      {"methods", {"discontinuity", "poisson"}},
+      {"methods", {"heightfield", "discontinuity", "poisson"}},
       {"diagnostics", {"render_slopes"}},
-      {"default_method", "discontinuity"},
+      {"default_method", std::string(ToString(default_method))},
       {"results", results},
-      {"ms_per_probe",
-       {{"mlp", evaluated > 0 ? 1000.0 * mlp_s / evaluated : 0.0},
-        {"integration_discontinuity", evaluated > 0 ? 1000.0 * integ_s[0] / evaluated : 0.0},
-        {"integration_poisson", evaluated > 0 ? 1000.0 * integ_s[1] / evaluated : 0.0}}},
+      {"ms_per_probe", ms_per_probe},
       {"seconds", std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count()},
   };
   return result;

@@ -24,7 +24,9 @@ struct CalibrateArgs {
   int max_epochs = 0;
   std::vector<int> hidden;
   int samples_per_probe = 0;
+  double edge_exclusion = -1.0;
   double smooth_sigma = -1.0;
+  std::string integration;
   int max_validation_probes = 0;
   std::int64_t sim_truth_seed = -1;
 };
@@ -54,6 +56,12 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
       ->delimiter(',');
   cmd->add_option("--samples-per-probe", a.samples_per_probe,
                   "Contact pixels sampled per probe for training (default: 250)");
+  cmd->add_option("--edge-exclusion", a.edge_exclusion,
+                  "Leave out training pixels within this many mm of the rigid imprint's edge, "
+                  "where the gel rounds it off (default: the dataset's)");
+  cmd->add_option("--integration", a.integration,
+                  "Default integrator of the model: heightfield, discontinuity or poisson "
+                  "(validation reports all three)");
   cmd->add_option("--smooth-sigma", a.smooth_sigma,
                   "Gaussian smoothing (px) of the colour difference before the MLP (default 1)");
   cmd->add_option("--max-validation-probes", a.max_validation_probes,
@@ -77,9 +85,13 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
     options.surface_map.threads = a.threads;
     if (a.max_epochs > 0) options.train.max_epochs = a.max_epochs;
     if (!a.hidden.empty()) options.train.hidden = a.hidden;
+    if (!a.integration.empty()) {
+      options.reconstruction.integration.method = ParseIntegrationMethod(a.integration);
+    }
     if (a.smooth_sigma >= 0.0) options.reconstruction.difference.smooth_sigma_px = a.smooth_sigma;
     if (a.samples_per_probe > 0)
       options.dataset.max_contact_samples_per_probe = a.samples_per_probe;
+    if (a.edge_exclusion >= 0.0) options.dataset.edge_exclusion_mm = a.edge_exclusion;
     if (a.max_validation_probes > 0) options.validation.max_probes = a.max_validation_probes;
     std::unique_ptr<SimValidationTruth> truth;
     if (a.sim_truth_seed >= 0) {

@@ -363,7 +363,8 @@ void GradientOptions::Check() const {
 }
 
 void IntegrationOptions::Check() const {
-  if (method != IntegrationMethod::kPoisson && method != IntegrationMethod::kDiscontinuityAware) {
+  if (method != IntegrationMethod::kPoisson && method != IntegrationMethod::kDiscontinuityAware &&
+      method != IntegrationMethod::kHeightField) {
     BadField("IntegrationOptions", "method", static_cast<double>(method), "is not a known method");
   }
   if (iterations < 1 || iterations > 1000) {
@@ -381,6 +382,7 @@ void IntegrationOptions::Check() const {
   if (!(tolerance >= 0.0) || !std::isfinite(tolerance)) {
     BadField("IntegrationOptions", "tolerance", tolerance, "must be finite and >= 0");
   }
+  height_field.Check();
 }
 
 std::string_view ToString(IntegrationMethod m) {
@@ -389,6 +391,8 @@ std::string_view ToString(IntegrationMethod m) {
       return "poisson";
     case IntegrationMethod::kDiscontinuityAware:
       return "discontinuity";
+    case IntegrationMethod::kHeightField:
+      return "heightfield";
   }
   return "unknown";
 }
@@ -398,8 +402,9 @@ IntegrationMethod ParseIntegrationMethod(std::string_view s) {
   if (s == "discontinuity" || s == "discontinuity-aware" || s == "bilateral") {
     return IntegrationMethod::kDiscontinuityAware;
   }
+  if (s == "heightfield" || s == "height-field") return IntegrationMethod::kHeightField;
   throw std::invalid_argument("unknown integration method \"" + std::string(s) +
-                              "\" (accepted: poisson, discontinuity)");
+                              "\" (accepted: poisson, discontinuity, heightfield)");
 }
 
 LogDepthGradients ComputeLogDepthGradients(const SurfaceMap& map, const cv::Rect& roi,
@@ -481,6 +486,11 @@ cv::Mat SolvePoissonDirichlet(const cv::Mat& f) {
 IntegrationResult IntegrateLogDepth(const SurfaceMap& map, const LogDepthGradients& g,
                                     const IntegrationOptions& options) {
   options.Check();
+  if (options.method == IntegrationMethod::kHeightField) {
+    throw std::invalid_argument(
+        "IntegrateLogDepth: the height-field method integrates slopes, not log-depth gradients "
+        "(recon/height_field.h IntegrateHeightField, or Reconstructor::IntegrateSlopes)");
+  }
   const auto start = std::chrono::steady_clock::now();
   const cv::Rect& roi = g.roi;
   if (roi.width < 3 || roi.height < 3) {

@@ -25,6 +25,7 @@
 #include <opencv2/core/mat.hpp>
 #include <string_view>
 
+#include "recon/height_field.h"
 #include "recon/surface_map.h"
 
 namespace gs360 {
@@ -51,12 +52,16 @@ LogDepthGradients ComputeLogDepthGradients(const SurfaceMap& map, const cv::Rect
                                            const cv::Mat& normals,
                                            const GradientOptions& options = {});
 
-enum class IntegrationMethod { kPoisson, kDiscontinuityAware };
+// kPoisson and kDiscontinuityAware integrate psi = log(rho / rho0) over the pixel grid (this
+// file); kHeightField integrates the indentation along n0 over the undeformed surface
+// (recon/height_field.h: it needs the camera, so the Reconstructor runs it).
+enum class IntegrationMethod { kPoisson, kDiscontinuityAware, kHeightField };
 std::string_view ToString(IntegrationMethod m);
-IntegrationMethod ParseIntegrationMethod(std::string_view s);  // "poisson", "discontinuity"
+// "poisson", "discontinuity", "heightfield"
+IntegrationMethod ParseIntegrationMethod(std::string_view s);
 
 struct IntegrationOptions {
-  IntegrationMethod method = IntegrationMethod::kDiscontinuityAware;
+  IntegrationMethod method = IntegrationMethod::kHeightField;
   // Discontinuity-aware weights (see integration.cc for their meaning).
   int iterations = 5;       // bilateral re-weighting passes, 1..1000
   double sharpness = 20.0;  // slope of the weights' sigmoid, > 0
@@ -66,6 +71,7 @@ struct IntegrationOptions {
   double scale = 1e-3;
   double min_weight = 1e-4;
   double tolerance = 1e-7;
+  HeightFieldOptions height_field;  // kHeightField only
   void Check() const;
 };
 
@@ -77,7 +83,7 @@ struct IntegrationResult {
 };
 
 // Solves for psi on g.roi with psi = 0 on the roi's border. Throws std::invalid_argument for a roi
-// smaller than 3 x 3 or sizes that do not match.
+// smaller than 3 x 3, sizes that do not match, or the kHeightField method.
 IntegrationResult IntegrateLogDepth(const SurfaceMap& map, const LogDepthGradients& g,
                                     const IntegrationOptions& options = {});
 

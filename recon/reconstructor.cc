@@ -5,6 +5,7 @@
 #include <functional>
 #include <limits>
 #include <map>
+#include <numbers>
 #include <set>
 #include <stdexcept>
 
@@ -88,7 +89,12 @@ Json ReconstructionOptionsToJson(const ReconstructionOptions& o) {
         {"sharpness", o.integration.sharpness},
         {"scale", o.integration.scale},
         {"min_weight", o.integration.min_weight},
-        {"tolerance", o.integration.tolerance}}},
+        {"tolerance", o.integration.tolerance},
+        {"height_field_iterations", o.integration.height_field.iterations},
+        {"height_field_tolerance", o.integration.height_field.tolerance},
+        {"height_field_unobserved_weight", o.integration.height_field.unobserved_weight},
+        {"height_field_min_normal_dot", o.integration.height_field.min_normal_dot},
+        {"height_field_min_view_angle_deg", o.integration.height_field.min_view_angle_deg}}},
   };
 }
 
@@ -127,13 +133,18 @@ ReconstructionOptions ReconstructionOptionsFromJson(const Json& json, const std:
       o.integration.method = ParseIntegrationMethod(method);
     } catch (const std::exception&) {
       throw std::invalid_argument(where + ".integration.method: unknown method \"" + method +
-                                  "\" (poisson or discontinuity)");
+                                  "\" (poisson, discontinuity or heightfield)");
     }
     r.Read("iterations", &o.integration.iterations);
     r.Read("sharpness", &o.integration.sharpness);
     r.Read("scale", &o.integration.scale);
     r.Read("min_weight", &o.integration.min_weight);
     r.Read("tolerance", &o.integration.tolerance);
+    r.Read("height_field_iterations", &o.integration.height_field.iterations);
+    r.Read("height_field_tolerance", &o.integration.height_field.tolerance);
+    r.Read("height_field_unobserved_weight", &o.integration.height_field.unobserved_weight);
+    r.Read("height_field_min_normal_dot", &o.integration.height_field.min_normal_dot);
+    r.Read("height_field_min_view_angle_deg", &o.integration.height_field.min_view_angle_deg);
     r.Finish();
   }
   root.Finish();
@@ -207,6 +218,23 @@ cv::Mat Reconstructor::PredictSlopes(const cv::Mat& diff, const cv::Rect& roi) c
   return slopes;
 }
 
+double ImprintViewAngleDeg(const SurfaceMap& map, const cv::Rect& roi, const cv::Mat& slopes) {
+  double sum = 0.0, sum_all = 0.0;
+  int n = 0, n_all = 0;
+  for (int y = 0; y < roi.height; ++y) {
+    for (int x = 0; x < roi.width; ++x) {
+      const int u = roi.x + x, v = roi.y + y;
+      if (!map.visible(u, v)) continue;
+      const cv::Vec2f g = slopes.at<cv::Vec2f>(y, x);
+      const double a = map.view_angle(u, v);
+      sum_all += a, ++n_all;
+      if (g[0] * g[0] + g[1] * g[1] > 0.09f) sum += a, ++n;
+    }
+  }
+  const double mean = n > 0 ? sum / n : n_all > 0 ? sum_all / n_all : 0.0;
+  return mean * 180.0 / std::numbers::pi;
+}
+
 RegionReconstruction Reconstructor::IntegrateSlopes(const cv::Mat& slopes,
                                                     const ContactRegion& region,
                                                     const IntegrationOptions& integration) const {
@@ -230,9 +258,36 @@ RegionReconstruction Reconstructor::IntegrateSlopes(const cv::Mat& slopes,
   const auto t0 = std::chrono::steady_clock::now();
   const LogDepthGradients grads =
       ComputeLogDepthGradients(*map_, roi, out.normals, options_.gradients);
-  const IntegrationResult solved = IntegrateLogDepth(*map_, grads, integration);
+  bool height_field = integration.method == IntegrationMethod::kHeightField;
+  if (height_field && integration.height_field.min_view_angle_deg > 0.0) {
+    height_field =
+        ImprintViewAngleDeg(*map_, roi, slopes) >= integration.height_field.min_view_angle_deg;
+  }
+  if (height_field) {
+    // Start from plain Poisson's indentation (about 1 ms): right where the view is steep, and
+    // of the right size elsewhere, so the passes only have to correct the shifts.
+    IntegrationOptions poisson = integration;
+    poisson.method = IntegrationMethod::kPoisson;
+    const cv::Mat rho_p = IntegrateLogDepth(*map_, grads, poisson).rho;
+    cv::Mat h0(roi.size(), CV_64F, cv::Scalar::all(0.0));
+    for (int y = 0; y < roi.height; ++y) {
+      for (int x = 0; x < roi.width; ++x) {
+        const int u = roi.x + x, v = roi.y + y;
+        const double r = rho_p.at<double>(y, x);
+        if (!map_->visible(u, v) || !std::isfinite(r)) continue;
+        h0.at<double>(y, x) =
+            (map_->rho0(u, v) - r) * std::abs(map_->ray(u, v).dot(map_->normal0(u, v)));
+      }
+    }
+    out.rho = IntegrateHeightField(*map_, camera_, roi, slopes, integration.height_field, h0).rho;
+  } else {
+    IntegrationOptions along_rays = integration;
+    if (along_rays.method == IntegrationMethod::kHeightField) {
+      along_rays.method = IntegrationMethod::kDiscontinuityAware;
+    }
+    out.rho = IntegrateLogDepth(*map_, grads, along_rays).rho;
+  }
   out.integration_seconds = Seconds(t0);
-  out.rho = solved.rho;
   out.indentation = cv::Mat(roi.size(), CV_64F, cv::Scalar::all(kNaN));
   for (int y = 0; y < roi.height; ++y) {
     for (int x = 0; x < roi.width; ++x) {

@@ -63,6 +63,11 @@ struct FrameReconstruction {
   double seconds = 0.0;
 };
 
+// Mean view angle (deg, recon/surface_map.h) over the roi's visible pixels whose slopes
+// (CV_32FC2, roi-sized) exceed 0.3 in magnitude -- the imprint -- or over all visible pixels
+// when none does; 0 when none is visible. Picks the integrator for kHeightField.
+double ImprintViewAngleDeg(const SurfaceMap& map, const cv::Rect& roi, const cv::Mat& slopes);
+
 class Reconstructor {
  public:
   // `reference`: CV_8UC3 of the map's size. Throws std::invalid_argument for mismatched sizes,

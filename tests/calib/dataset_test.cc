@@ -1,5 +1,6 @@
 #include <catch2/catch.hpp>
 
+#include <cmath>
 #include <set>
 
 #include "calib/dataset.h"
@@ -119,4 +120,37 @@ TEST_CASE("dataset: binary round trip, corruption refused", "[calib][dataset]") 
   CHECK_THROWS_WITH(Dataset::Deserialize(bad), Catch::Contains("checksum"));
   std::vector<std::uint8_t> cut(bytes.begin(), bytes.begin() + 30);
   CHECK_THROWS_AS(Dataset::Deserialize(cut), std::runtime_error);
+}
+
+TEST_CASE("dataset: pixels near the rigid imprint's edge are left out when asked",
+          "[calib][dataset]") {
+  cv::Mat diff(240, 320, CV_32FC3, cv::Scalar(0.1f, 0.2f, 0.3f));
+  const ProbeRender r = DiscRender(12);
+  // Penetration: 0.1 mm per pixel from the disc's edge (+ inside, - outside).
+  cv::Mat pen(r.roi.size(), CV_32F);
+  for (int y = 0; y < 40; ++y)
+    for (int x = 0; x < 40; ++x)
+      pen.at<float>(y, x) =
+          0.1f * (12.0f - std::hypot(static_cast<float>(x - 20), static_cast<float>(y - 20)));
+  DatasetOptions o;
+  o.max_contact_samples_per_probe = 1000;
+  o.edge_exclusion_mm = 0.25;
+  Dataset d;
+  const std::size_t n = AppendProbeSamples(diff, r, 7, o, &d, pen);
+  REQUIRE(n > 0);
+  int contact = 0;
+  for (std::size_t i = 0; i < n; ++i) {
+    const auto c = static_cast<Eigen::Index>(i);
+    const int x = static_cast<int>(d.x(0, c)) - r.roi.x, y = static_cast<int>(d.x(1, c)) - r.roi.y;
+    CHECK(std::abs(pen.at<float>(y, x)) >= 0.25f);
+    contact += d.contact[i];
+  }
+  // Contact pixels at least 2.5 px inside the 12 px disc: radius <= 9.5, about 280 of ~450.
+  CHECK(contact < r.contact_pixels * 3 / 4);
+  CHECK(contact > r.contact_pixels / 2);
+  // Without the penetration map the option is an error, not a silent no-op.
+  Dataset e;
+  CHECK_THROWS_AS(AppendProbeSamples(diff, r, 7, o, &e), std::invalid_argument);
+  o.edge_exclusion_mm = 3.0;
+  CHECK_THROWS_WITH(o.Check(), Catch::Contains("edge_exclusion_mm"));
 }

@@ -196,3 +196,39 @@ TEST_CASE("RenderProbe: steep slopes are clamped and flagged", "[render]") {
 
 }  // namespace
 }  // namespace gs360
+
+namespace gs360 {
+
+TEST_CASE("NormalPenetration: signed depth of the ball along the plate's normal", "[render]") {
+  const PlateScene& s = Scene();
+  const double depth = 1.0;
+  const Eigen::Vector3d c(0.0, 0.0, kPlateCam + kRadius - depth);
+  const ProbeRender pr = RenderProbe(s.map, s.camera, c, kRadius);
+  const cv::Rect roi(pr.roi.x - 10, pr.roi.y - 10, pr.roi.width + 20, pr.roi.height + 20);
+  const cv::Mat pen = NormalPenetration(s.map, roi, c, kRadius);
+  REQUIRE(pen.size() == roi.size());
+  int inside = 0, outside = 0;
+  for (int y = 0; y < roi.height; ++y) {
+    for (int x = 0; x < roi.width; ++x) {
+      const Eigen::Vector3d x0 = s.map.point0(roi.x + x, roi.y + y);
+      const double lateral = std::hypot(x0.x() - c.x(), x0.y() - c.y());
+      const double p = pen.at<float>(y, x);
+      // On a plate the normal line meets the sphere at the same height inside and outside the
+      // contact: p = sqrt(r^2 - l^2) - (r - depth); beyond l = r it misses: p = r - |x0 - c|.
+      const double want = lateral < kRadius
+                              ? std::sqrt(kRadius * kRadius - lateral * lateral) - (kRadius - depth)
+                              : kRadius - (x0 - c).norm();
+      CHECK(p == Approx(want).margin(1e-4));
+      (p > 0 ? inside : outside)++;
+      const int rx = roi.x + x - pr.roi.x, ry = roi.y + y - pr.roi.y;
+      if (rx >= 0 && ry >= 0 && rx < pr.roi.width && ry < pr.roi.height && std::abs(p) > 1e-3) {
+        CHECK((pr.contact.at<std::uint8_t>(ry, rx) == 255) == (p > 0));
+      }
+    }
+  }
+  CHECK(inside > 100);
+  CHECK(outside > 100);
+  CHECK_THROWS_AS(NormalPenetration(s.map, roi, c, 0.0), std::invalid_argument);
+}
+
+}  // namespace gs360

@@ -61,7 +61,9 @@ Both RunBoth(const SurfaceMap& map, const testing::PressScene& s,
   IntegrationOptions p;
   p.method = IntegrationMethod::kPoisson;
   const IntegrationResult rp = IntegrateLogDepth(map, g, p);
-  const IntegrationResult rd = IntegrateLogDepth(map, g, IntegrationOptions{});
+  IntegrationOptions d;
+  d.method = IntegrationMethod::kDiscontinuityAware;
+  const IntegrationResult rd = IntegrateLogDepth(map, g, d);
   REQUIRE(rd.iterations >= 1);
   return {testing::MeasurePress(map, s, rp.rho, wall), testing::MeasurePress(map, s, rd.rho, wall)};
 }
@@ -116,7 +118,7 @@ TEST_CASE("Integration options and method names", "[integration]") {
           IntegrationMethod::kDiscontinuityAware);
   REQUIRE_THROWS_WITH(ParseIntegrationMethod("fft"), Catch::Contains("fft"));
   IntegrationOptions o;
-  REQUIRE(o.method == IntegrationMethod::kDiscontinuityAware);
+  REQUIRE(o.method == IntegrationMethod::kHeightField);
   REQUIRE_NOTHROW(o.Check());
   o.iterations = 0;
   REQUIRE_THROWS_WITH(o.Check(), Catch::Contains("iterations"));
@@ -316,14 +318,16 @@ TEST_CASE("Integration input errors throw std::invalid_argument", "[integration]
       std::invalid_argument);
   const LogDepthGradients ok = ComputeLogDepthGradients(map, cv::Rect(70, 50, 10, 10), normals);
   REQUIRE(cv::countNonZero(ok.valid) == 100);
-  const IntegrationResult flat = IntegrateLogDepth(map, ok);
+  IntegrationOptions da;
+  da.method = IntegrationMethod::kDiscontinuityAware;
+  const IntegrationResult flat = IntegrateLogDepth(map, ok, da);
   REQUIRE(cv::norm(flat.psi, cv::NORM_INF) < 1e-12);
   LogDepthGradients small = ok;
   small.roi = cv::Rect(70, 50, 2, 10);
-  REQUIRE_THROWS_AS(IntegrateLogDepth(map, small), std::invalid_argument);
+  REQUIRE_THROWS_AS(IntegrateLogDepth(map, small, da), std::invalid_argument);
   LogDepthGradients mismatch = ok;
   mismatch.gu = cv::Mat::zeros(9, 10, CV_64F);
-  REQUIRE_THROWS_AS(IntegrateLogDepth(map, mismatch), std::invalid_argument);
+  REQUIRE_THROWS_AS(IntegrateLogDepth(map, mismatch, da), std::invalid_argument);
 }
 
 }  // namespace gs360

@@ -1,0 +1,297 @@
+#include "recon/height_field.h"
+
+#include <Eigen/Sparse>
+#include <Eigen/SparseCholesky>
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+namespace gs360 {
+namespace {
+
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+[[noreturn]] void Bad(const char* field, double value, const char* want) {
+  throw std::invalid_argument(std::string("HeightFieldOptions.") + field + " must be " + want +
+                              ", got " + std::to_string(value));
+}
+
+// The undeformed surface on the region's grid: point, normal and derivatives along u and v.
+struct Grid {
+  int w = 0, h = 0;
+  std::vector<Eigen::Vector3d> x0, n0, xu, xv, nu, nv;  // nu, nv: derivatives of n0
+  std::vector<std::uint8_t> ok;                         // visible with usable derivatives
+  int Index(int x, int y) const { return y * w + x; }
+};
+
+Grid BuildGrid(const SurfaceMap& map, const cv::Rect& roi) {
+  Grid g;
+  g.w = roi.width, g.h = roi.height;
+  const std::size_t n = static_cast<std::size_t>(g.w) * static_cast<std::size_t>(g.h);
+  const Eigen::Vector3d zero = Eigen::Vector3d::Zero();
+  g.x0.assign(n, zero), g.n0.assign(n, zero), g.xu.assign(n, zero), g.xv.assign(n, zero);
+  g.nu.assign(n, zero), g.nv.assign(n, zero);
+  g.ok.assign(n, 0);
+  auto vis = [&](int u, int v) {
+    return u >= 0 && v >= 0 && u < map.width() && v < map.height() && map.visible(u, v);
+  };
+  // Central difference where both neighbours are visible (map pixels beyond the roi count),
+  // one-sided otherwise.
+  auto derivative = [&](int u, int v, int du, int dv, Eigen::Vector3d* dx, Eigen::Vector3d* dn) {
+    const bool fwd = vis(u + du, v + dv), back = vis(u - du, v - dv);
+    if (fwd && back) {
+      *dx = 0.5 * (map.point0(u + du, v + dv) - map.point0(u - du, v - dv));
+      *dn = 0.5 * (map.normal0(u + du, v + dv) - map.normal0(u - du, v - dv));
+    } else if (fwd) {
+      *dx = map.point0(u + du, v + dv) - map.point0(u, v);
+      *dn = map.normal0(u + du, v + dv) - map.normal0(u, v);
+    } else if (back) {
+      *dx = map.point0(u, v) - map.point0(u - du, v - dv);
+      *dn = map.normal0(u, v) - map.normal0(u - du, v - dv);
+    } else {
+      return false;
+    }
+    return true;
+  };
+  for (int y = 0; y < g.h; ++y) {
+    for (int x = 0; x < g.w; ++x) {
+      const int u = roi.x + x, v = roi.y + y, i = g.Index(x, y);
+      if (!map.visible(u, v)) continue;
+      g.x0[i] = map.point0(u, v);
+      g.n0[i] = map.normal0(u, v);
+      if (derivative(u, v, 1, 0, &g.xu[i], &g.nu[i]) &&
+          derivative(u, v, 0, 1, &g.xv[i], &g.nv[i])) {
+        g.ok[i] = 1;
+      }
+    }
+  }
+  return g;
+}
+
+// Depth-buffered rasterisation of the deformed grid surface into the region's pixels.
+struct Raster {
+  std::vector<double> depth;  // distance from the camera centre; +inf = nothing seen
+  std::vector<float> sx, sy;  // grid position of the point seen
+};
+
+void Rasterize(const Grid& g, const FisheyeCamera& camera, const cv::Rect& roi,
+               const std::vector<double>& h, Raster* r) {
+  const std::size_t n = g.x0.size();
+  std::vector<Eigen::Vector2d> p(n, Eigen::Vector2d::Zero());
+  std::vector<double> dist(n, kNaN);
+  for (std::size_t i = 0; i < n; ++i) {
+    if (!g.ok[i]) continue;
+    const Eigen::Vector3d x = g.x0[i] - h[i] * g.n0[i];
+    if (!(x.norm() > 1e-9)) continue;
+    p[i] = camera.ProjectUnchecked(x) - Eigen::Vector2d(roi.x, roi.y);
+    dist[i] = x.norm();
+    if (!p[i].allFinite()) dist[i] = kNaN;
+  }
+  r->depth.assign(n, std::numeric_limits<double>::infinity());
+  r->sx.assign(n, 0.0f);
+  r->sy.assign(n, 0.0f);
+  auto triangle = [&](int a, int b, int c) {
+    if (!std::isfinite(dist[a]) || !std::isfinite(dist[b]) || !std::isfinite(dist[c])) return;
+    const Eigen::Vector2d &pa = p[a], &pb = p[b], &pc = p[c];
+    const double area = (pb - pa).x() * (pc - pa).y() - (pb - pa).y() * (pc - pa).x();
+    if (std::abs(area) < 1e-12) return;
+    const double lo_x = std::min({pa.x(), pb.x(), pc.x()}),
+                 hi_x = std::max({pa.x(), pb.x(), pc.x()});
+    const double lo_y = std::min({pa.y(), pb.y(), pc.y()}),
+                 hi_y = std::max({pa.y(), pb.y(), pc.y()});
+    // A triangle this large is a fold across the occluding contour seen edge-on: skip it.
+    if (hi_x - lo_x > 32.0 || hi_y - lo_y > 32.0) return;
+    const int x0 = std::max(0, static_cast<int>(std::ceil(lo_x - 1e-9)));
+    const int x1 = std::min(g.w - 1, static_cast<int>(std::floor(hi_x + 1e-9)));
+    const int y0 = std::max(0, static_cast<int>(std::ceil(lo_y - 1e-9)));
+    const int y1 = std::min(g.h - 1, static_cast<int>(std::floor(hi_y + 1e-9)));
+    const double kEps = 1e-7;
+    for (int y = y0; y <= y1; ++y) {
+      for (int x = x0; x <= x1; ++x) {
+        const Eigen::Vector2d q(x, y);
+        const double l1 = ((q - pa).x() * (pc - pa).y() - (q - pa).y() * (pc - pa).x()) / area;
+        const double l2 = ((pb - pa).x() * (q - pa).y() - (pb - pa).y() * (q - pa).x()) / area;
+        const double l0 = 1.0 - l1 - l2;
+        if (l0 < -kEps || l1 < -kEps || l2 < -kEps) continue;
+        const double d = l0 * dist[a] + l1 * dist[b] + l2 * dist[c];
+        const int k = g.Index(x, y);
+        if (d >= r->depth[k]) continue;
+        r->depth[k] = d;
+        r->sx[k] = static_cast<float>(l0 * (a % g.w) + l1 * (b % g.w) + l2 * (c % g.w));
+        r->sy[k] = static_cast<float>(l0 * (a / g.w) + l1 * (b / g.w) + l2 * (c / g.w));
+      }
+    }
+  };
+  for (int y = 0; y + 1 < g.h; ++y) {
+    for (int x = 0; x + 1 < g.w; ++x) {
+      const int i00 = g.Index(x, y), i10 = i00 + 1, i01 = i00 + g.w, i11 = i01 + 1;
+      triangle(i00, i10, i11);
+      triangle(i00, i11, i01);
+    }
+  }
+}
+
+}  // namespace
+
+void HeightFieldOptions::Check() const {
+  if (iterations < 1 || iterations > 100) Bad("iterations", iterations, "in 1..100");
+  if (!(tolerance >= 0.0)) Bad("tolerance", tolerance, ">= 0");
+  if (!(unobserved_weight > 0.0 && unobserved_weight <= 1.0)) {
+    Bad("unobserved_weight", unobserved_weight, "in (0, 1]");
+  }
+  if (!(min_normal_dot > 0.0 && min_normal_dot < 1.0)) {
+    Bad("min_normal_dot", min_normal_dot, "in (0, 1)");
+  }
+  if (!(min_view_angle_deg >= 0.0 && min_view_angle_deg < 90.0)) {
+    Bad("min_view_angle_deg", min_view_angle_deg, "in [0, 90)");
+  }
+}
+
+HeightFieldResult IntegrateHeightField(const SurfaceMap& map, const FisheyeCamera& camera,
+                                       const cv::Rect& roi, const cv::Mat& slopes,
+                                       const HeightFieldOptions& options,
+                                       const cv::Mat& initial_height) {
+  options.Check();
+  if (roi.width < 3 || roi.height < 3 || roi.x < 0 || roi.y < 0 ||
+      roi.x + roi.width > map.width() || roi.y + roi.height > map.height()) {
+    throw std::invalid_argument("IntegrateHeightField: roi must be at least 3 x 3 inside the map");
+  }
+  if (slopes.type() != CV_32FC2 || slopes.size() != roi.size()) {
+    throw std::invalid_argument("IntegrateHeightField: slopes must be CV_32FC2 of the roi's size");
+  }
+  const Grid g = BuildGrid(map, roi);
+  const int w = g.w, hgt = g.h;
+  const std::size_t n = g.x0.size();
+
+  // Each pixel's observed normal, in the camera frame (from its own tangent frame).
+  std::vector<Eigen::Vector3d> normal(n, Eigen::Vector3d::Zero());
+  std::vector<std::uint8_t> has_normal(n, 0);
+  for (int y = 0; y < hgt; ++y) {
+    for (int x = 0; x < w; ++x) {
+      const int u = roi.x + x, v = roi.y + y;
+      if (!map.visible(u, v)) continue;
+      const cv::Vec2f s = slopes.at<cv::Vec2f>(y, x);
+      if (!std::isfinite(s[0]) || !std::isfinite(s[1])) continue;
+      normal[g.Index(x, y)] = map.NormalFromSlopes(u, v, s[0], s[1]);
+      has_normal[g.Index(x, y)] = 1;
+    }
+  }
+
+  // Unknowns: interior grid points (the border is h = 0).
+  std::vector<int> var(n, -1);
+  int unknowns = 0;
+  for (int y = 1; y + 1 < hgt; ++y)
+    for (int x = 1; x + 1 < w; ++x) var[g.Index(x, y)] = unknowns++;
+
+  if (!initial_height.empty() &&
+      (initial_height.type() != CV_64F || initial_height.size() != roi.size())) {
+    throw std::invalid_argument("IntegrateHeightField: initial_height must be CV_64F roi-sized");
+  }
+  HeightFieldResult out;
+  std::vector<double> h(n, 0.0);
+  if (!initial_height.empty()) {
+    for (std::size_t i = 0; i < n; ++i) {
+      const int x = static_cast<int>(i % static_cast<std::size_t>(w));
+      const int y = static_cast<int>(i / static_cast<std::size_t>(w));
+      const double v = initial_height.at<double>(y, x);
+      if (var[i] >= 0 && std::isfinite(v)) h[i] = v;
+    }
+  }
+  Raster raster;
+  std::vector<double> tu(n), tv(n), wsum(n);
+  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> solver;
+  bool analysed = false;
+  for (int pass = 0; pass < options.iterations; ++pass) {
+    Rasterize(g, camera, roi, h, &raster);
+    // Observations: pixel k sees grid position s'(k); its normal gives dh/du, dh/dv there,
+    // spread bilinearly over the four grid points around s'.
+    std::fill(tu.begin(), tu.end(), 0.0);
+    std::fill(tv.begin(), tv.end(), 0.0);
+    std::fill(wsum.begin(), wsum.end(), 0.0);
+    for (std::size_t k = 0; k < n; ++k) {
+      if (!has_normal[k]) continue;
+      double sx = static_cast<double>(k % static_cast<std::size_t>(w));
+      double sy = static_cast<double>(k / static_cast<std::size_t>(w));
+      if (std::isfinite(raster.depth[k])) sx = raster.sx[k], sy = raster.sy[k];
+      const int ix = std::clamp(static_cast<int>(std::floor(sx)), 0, w - 2);
+      const int iy = std::clamp(static_cast<int>(std::floor(sy)), 0, hgt - 2);
+      const double fx = std::clamp(sx - ix, 0.0, 1.0), fy = std::clamp(sy - iy, 0.0, 1.0);
+      const Eigen::Vector3d& nn = normal[k];
+      for (int c = 0; c < 4; ++c) {
+        const int gx = ix + (c & 1), gy = iy + (c >> 1);
+        const double wt =
+            ((c & 1) == (fx >= 0.5 ? 1 : 0) && (c >> 1) == (fy >= 0.5 ? 1 : 0)) ? 1.0 : 0.0;
+        const int i = g.Index(gx, gy);
+        if (wt <= 0.0 || !g.ok[i]) continue;
+        const double nd = nn.dot(g.n0[i]);
+        if (nd < options.min_normal_dot) continue;
+        // n is normal to dX/du = dx0/du - dh/du n0 - h dn0/du (h from the last pass).
+        tu[i] += wt * (nn.dot(g.xu[i]) - h[i] * nn.dot(g.nu[i])) / nd;
+        tv[i] += wt * (nn.dot(g.xv[i]) - h[i] * nn.dot(g.nv[i])) / nd;
+        wsum[i] += wt;
+      }
+    }
+    // Normal equations of sum_e w_e (h_b - h_a - t_e)^2.
+    std::vector<Eigen::Triplet<double>> trip;
+    trip.reserve(static_cast<std::size_t>(unknowns) * 5);
+    Eigen::VectorXd rhs = Eigen::VectorXd::Zero(unknowns);
+    auto edge = [&](int a, int b, bool along_u) {
+      const double wa = wsum[a], wb = wsum[b];
+      double t = 0.0, we = options.unobserved_weight;
+      if (wa + wb > 0.0) {
+        const double ta = wa > 0.0 ? (along_u ? tu[a] : tv[a]) / wa : 0.0;
+        const double tb = wb > 0.0 ? (along_u ? tu[b] : tv[b]) / wb : 0.0;
+        t = (wa * ta + wb * tb) / (wa + wb);
+        we = std::clamp(0.5 * (wa + wb), options.unobserved_weight, 1.0);
+      }
+      const int va = var[a], vb = var[b];
+      if (va >= 0) trip.emplace_back(va, va, we), rhs[va] -= we * t;
+      if (vb >= 0) trip.emplace_back(vb, vb, we), rhs[vb] += we * t;
+      if (va >= 0 && vb >= 0) trip.emplace_back(va, vb, -we), trip.emplace_back(vb, va, -we);
+    };
+    for (int y = 0; y < hgt; ++y) {
+      for (int x = 0; x < w; ++x) {
+        const int i = g.Index(x, y);
+        if (x + 1 < w) edge(i, i + 1, true);
+        if (y + 1 < hgt) edge(i, i + w, false);
+      }
+    }
+    Eigen::SparseMatrix<double> a(unknowns, unknowns);
+    a.setFromTriplets(trip.begin(), trip.end());
+    if (!analysed) solver.analyzePattern(a), analysed = true;
+    solver.factorize(a);
+    if (solver.info() != Eigen::Success) break;
+    const Eigen::VectorXd sol = solver.solve(rhs);
+    double change = 0.0;
+    for (std::size_t i = 0; i < n; ++i) {
+      if (var[i] < 0) continue;
+      change = std::max(change, std::abs(sol[var[i]] - h[i]));
+      h[i] = sol[var[i]];
+    }
+    out.iterations = pass + 1;
+    if (change < options.tolerance) break;
+  }
+
+  Rasterize(g, camera, roi, h, &raster);
+  out.height = cv::Mat(roi.size(), CV_64F, cv::Scalar::all(0.0));
+  out.rho = cv::Mat(roi.size(), CV_64F, cv::Scalar::all(kNaN));
+  out.observed = cv::Mat(roi.size(), CV_8U, cv::Scalar::all(0));
+  for (int y = 0; y < hgt; ++y) {
+    for (int x = 0; x < w; ++x) {
+      const int i = g.Index(x, y);
+      out.height.at<double>(y, x) = h[i];
+      if (wsum[i] > 0.0) out.observed.at<std::uint8_t>(y, x) = 255;
+      if (!map.visible(roi.x + x, roi.y + y)) continue;
+      // Nothing rasterised here (a roi edge or a hole next to an invisible pixel): the pixel's
+      // own grid point, moved along its normal, is the best guess.
+      out.rho.at<double>(y, x) =
+          std::isfinite(raster.depth[i]) ? raster.depth[i] : (g.x0[i] - h[i] * g.n0[i]).norm();
+    }
+  }
+  return out;
+}
+
+}  // namespace gs360

@@ -1,0 +1,64 @@
+#pragma once
+// Integration of slopes as a height field over the undeformed gel surface: the reconstruction's
+// answer to occlusion (../shared/DESIGN.md, "Reconstruction").
+//
+// Seen from the base camera, an imprint in the side wall is a bump that hides the wall behind
+// it: along a pixel's ray the deformed distance rho jumps at the occluding contour, and no normal
+// says by how much. The indentation h measured along the undeformed normal is single-valued
+// there. So the unknown is h(s) on the region's pixel grid s = (u, v), read as a
+// parametrisation of the UNDEFORMED surface x0(s) (the surface map): the deformed surface is
+// X(s) = x0(s) - h(s) n0(s), and where its normal is n (n is normal to dX/du and dX/dv),
+//     dh/du = (n . dx0/du - h n . dn0/du) / (n . n0),  and the same along v
+// (h in the curvature term from the previous pass). A pixel p does not see X(p) but the first point
+// of X its ray meets, shifted along the wall by about h tan(view angle). Each pass therefore
+//   1. projects the current surface X into the image and rasterises it with a depth buffer:
+//      every pixel gets the grid position s'(p) of the point it sees and its distance rho(p);
+//      grid points no pixel sees (behind the bump) get no data;
+//   2. turns each pixel's slopes (its normal n(p), from the MLP, in p's own tangent frame) into
+//      targets for dh/du, dh/dv at s'(p), spread bilinearly over the four grid points around it;
+//   3. solves the weighted least squares  sum_edges w (h_b - h_a - t)^2  with h = 0 on the
+//      region's border; edges without data get a small weight (a membrane: the hidden far side
+//      of the imprint is bridged smoothly between the border and what is seen).
+// It starts from `initial_height` when given (e.g. a plain Poisson solution's indentation,
+// which is close where the view is steep and sets the scale of the shifts), else from h = 0, and
+// stops after `iterations` passes or when h changes by less than `tolerance` (mm).
+//
+// Frames: camera frame, mm. Pixel (u, v) of the map is camera pixel (u, v) (centres on integers).
+#include <opencv2/core/mat.hpp>
+
+#include "geometry/fisheye.h"
+#include "recon/surface_map.h"
+
+namespace gs360 {
+
+struct HeightFieldOptions {
+  int iterations = 6;               // projection / solve passes, 1..100
+  double tolerance = 1e-4;          // mm; stop when max |h change| falls below, >= 0
+  double unobserved_weight = 1e-3;  // weight of edges no pixel observes, (0, 1]
+  double min_normal_dot = 0.3;      // slopes steeper than ~72 deg (noise, rims) give no data
+  // Regions whose imprint is seen more squarely than this (mean view angle over the pixels
+  // with |slope| > 0.3) are integrated along the rays instead (the discontinuity-aware psi
+  // integrator, recon/integration.h): nothing is hidden there, the ray parametrisation is exact,
+  // and the height field's resampling only adds error (measured: bench_integration, and the
+  // validation's view bands). 0 = always the height field. [0, 90).
+  double min_view_angle_deg = 30.0;
+  void Check() const;  // throws std::invalid_argument naming the field and value
+};
+
+struct HeightFieldResult {
+  cv::Mat height;    // CV_64F roi-sized: h along -n0 (mm, + into the gel), 0 on the border
+  cv::Mat rho;       // CV_64F roi-sized: first hit along each pixel's ray (mm); NaN if invisible
+  cv::Mat observed;  // CV_8U roi-sized: 255 where a pixel's observation landed on the grid
+  int iterations = 0;
+};
+
+// slopes: CV_32FC2 roi-sized tangent-frame slopes (gx, gy) per pixel, in the pixel's own frame
+// (recon/surface_map.h). `camera` is the map's camera. initial_height: empty, or CV_64F
+// roi-sized (mm; non-finite values count as 0). Throws std::invalid_argument for a roi
+// smaller than 3 x 3, outside the map, or slopes of the wrong type/size.
+HeightFieldResult IntegrateHeightField(const SurfaceMap& map, const FisheyeCamera& camera,
+                                       const cv::Rect& roi, const cv::Mat& slopes,
+                                       const HeightFieldOptions& options = {},
+                                       const cv::Mat& initial_height = cv::Mat());
+
+}  // namespace gs360
