@@ -206,8 +206,10 @@ HeightFieldResult IntegrateHeightField(const SurfaceMap& map, const FisheyeCamer
   bool analysed = false;
   for (int pass = 0; pass < options.iterations; ++pass) {
     Rasterize(g, camera, roi, h, &raster);
-    // Observations: pixel k sees grid position s'(k); its normal gives dh/du, dh/dv there,
-    // spread bilinearly over the four grid points around s'.
+    // Observations: pixel k sees grid position s'(k); its normal gives dh/du, dh/dv at the grid
+    // point nearest s'. (Spreading it bilinearly over the four around smears the slope jump at
+    // the imprint's edge: bench_integration --hf-init, < 30 / 30-50 / > 50 deg, 0.0144 / 0.0162 /
+    // 0.0442 mm bilinear against 0.0133 / 0.0113 / 0.0369 nearest.)
     std::fill(tu.begin(), tu.end(), 0.0);
     std::fill(tv.begin(), tv.end(), 0.0);
     std::fill(wsum.begin(), wsum.end(), 0.0);
@@ -216,23 +218,16 @@ HeightFieldResult IntegrateHeightField(const SurfaceMap& map, const FisheyeCamer
       double sx = static_cast<double>(k % static_cast<std::size_t>(w));
       double sy = static_cast<double>(k / static_cast<std::size_t>(w));
       if (std::isfinite(raster.depth[k])) sx = raster.sx[k], sy = raster.sy[k];
-      const int ix = std::clamp(static_cast<int>(std::floor(sx)), 0, w - 2);
-      const int iy = std::clamp(static_cast<int>(std::floor(sy)), 0, hgt - 2);
-      const double fx = std::clamp(sx - ix, 0.0, 1.0), fy = std::clamp(sy - iy, 0.0, 1.0);
+      const int i = g.Index(std::clamp(static_cast<int>(std::lround(sx)), 0, w - 1),
+                            std::clamp(static_cast<int>(std::lround(sy)), 0, hgt - 1));
+      if (!g.ok[i]) continue;
       const Eigen::Vector3d& nn = normal[k];
-      for (int c = 0; c < 4; ++c) {
-        const int gx = ix + (c & 1), gy = iy + (c >> 1);
-        const double wt =
-            ((c & 1) == (fx >= 0.5 ? 1 : 0) && (c >> 1) == (fy >= 0.5 ? 1 : 0)) ? 1.0 : 0.0;
-        const int i = g.Index(gx, gy);
-        if (wt <= 0.0 || !g.ok[i]) continue;
-        const double nd = nn.dot(g.n0[i]);
-        if (nd < options.min_normal_dot) continue;
-        // n is normal to dX/du = dx0/du - dh/du n0 - h dn0/du (h from the last pass).
-        tu[i] += wt * (nn.dot(g.xu[i]) - h[i] * nn.dot(g.nu[i])) / nd;
-        tv[i] += wt * (nn.dot(g.xv[i]) - h[i] * nn.dot(g.nv[i])) / nd;
-        wsum[i] += wt;
-      }
+      const double nd = nn.dot(g.n0[i]);
+      if (nd < options.min_normal_dot) continue;
+      // n is normal to dX/du = dx0/du - dh/du n0 - h dn0/du (h from the last pass).
+      tu[i] += (nn.dot(g.xu[i]) - h[i] * nn.dot(g.nu[i])) / nd;
+      tv[i] += (nn.dot(g.xv[i]) - h[i] * nn.dot(g.nv[i])) / nd;
+      wsum[i] += 1.0;
     }
     // Normal equations of sum_e w_e (h_b - h_a - t_e)^2.
     std::vector<Eigen::Triplet<double>> trip;
@@ -263,6 +258,8 @@ HeightFieldResult IntegrateHeightField(const SurfaceMap& map, const FisheyeCamer
     a.setFromTriplets(trip.begin(), trip.end());
     if (!analysed) solver.analyzePattern(a), analysed = true;
     solver.factorize(a);
+    // Every unknown has four edges of weight > 0 and the border is fixed: the matrix is
+    // positive definite. Should the factorisation still fail, keep the last pass's h.
     if (solver.info() != Eigen::Success) break;
     const Eigen::VectorXd sol = solver.solve(rhs);
     double change = 0.0;
