@@ -91,7 +91,7 @@ void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
     RunDatabaseOptions ro;
     ro.read_only = true;
     RunDatabase database(db, ro);
-    const CaptureTruth truth = CheckCapturesAgainstTruth(rig.cnc(), database, run_id);
+    const CaptureTruth truth = CheckCapturesAgainstTruth(rig, database, run_id);
     const double mb = static_cast<double>(std::filesystem::file_size(db)) / 1e6;
     std::printf("\nbench acquisition: %s, %lld probes, time scale %s\n", o.shape.c_str(),
                 static_cast<long long>(report.captured),

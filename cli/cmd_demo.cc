@@ -80,7 +80,7 @@ void RegisterDemoCommand(CLI::App& app, CommandContext& ctx) {
     ro.read_only = true;
     RunDatabase database(db, ro);
     const RunStatus status = database.GetRunStatus(run_id);
-    const CaptureTruth truth = CheckCapturesAgainstTruth(rig.cnc(), database, run_id);
+    const CaptureTruth truth = CheckCapturesAgainstTruth(rig, database, run_id);
     const double wall =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     std::printf("\nacquisition: %s (%s)\n", std::string(ToString(report.outcome)).c_str(),
@@ -92,9 +92,10 @@ void RegisterDemoCommand(CLI::App& app, CommandContext& ctx) {
         report.captured > 0 ? 1000.0 * report.seconds / static_cast<double>(report.captured) : 0.0,
         db.string().c_str(), static_cast<double>(std::filesystem::file_size(db)) / 1e6);
     std::printf(
-        "  truth check: %d frames, %d taken off the press point; max |true - planned| = "
-        "%.4f mm, max |reported - true| = %.4f mm\n",
-        truth.frames, truth.off_target, truth.max_error_mm, truth.max_reported_error_mm);
+        "  truth check: %d frames, %d taken off the press point, %d unverifiable; max |true - "
+        "planned| = %.4f mm, max |reported - true| = %.4f mm\n",
+        truth.frames, truth.off_target, truth.unverified, truth.max_error_mm,
+        truth.max_reported_error_mm);
     const bool acquired =
         report.outcome == RunOutcome::kDone && truth.off_target == 0 && truth.unverified == 0;
     if (acquired && !o.no_calibrate) {

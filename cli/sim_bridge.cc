@@ -1,10 +1,17 @@
 #include "cli/sim_bridge.h"
 
+#include <array>
+#include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <stdexcept>
+#include <unordered_map>
 
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
+#include "daemon/json_reader.h"
+#include "geometry/hash.h"
 #include "sim/checkerboard.h"
 #include "sim/ground_truth.h"
 
@@ -53,8 +60,10 @@ VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t
   options.camera.sensor.seed = seed;
   options.cnc.time_scale = time_scale;
   options.cnc.symlink_path = symlink;
-  // Enough motion history to verify every frame of a 10,000-probe run against the truth.
+  // Enough motion history (pieces, and instant-mode clock jumps: ~9 per probe) and served-frame
+  // records (~4 per probe) to verify every frame of a 10,000-probe run against the truth.
   options.cnc.history_pieces = 1u << 18;
+  options.frame_log_capacity = 1u << 18;
   options.frame_socket = frame_socket;
   VirtualSetup setup;
   setup.rig = std::make_unique<VirtualRig>(options);
@@ -67,35 +76,127 @@ VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t
 }  // namespace gs360::cli
 
 namespace gs360::cli {
+namespace {
 
-CaptureTruth CheckCapturesAgainstTruth(const VirtualCnc& cnc, const RunDatabase& db,
-                                       std::int64_t run_id, double tolerance_mm) {
-  using Clock = std::chrono::steady_clock;
-  const double unix_now =
-      std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
-  const Clock::time_point steady_now = Clock::now();
-  auto to_steady = [&](double unix_s) {
-    return steady_now + std::chrono::duration_cast<Clock::duration>(
-                            std::chrono::duration<double>(unix_s - unix_now));
-  };
+using Fingerprint = std::array<std::uint8_t, 3 * kFingerprintPixels>;
+using SteadyClock = std::chrono::steady_clock;
+
+double Seconds(SteadyClock::time_point t) {
+  return std::chrono::duration<double>(t.time_since_epoch()).count();
+}
+
+SteadyClock::time_point SteadyAt(double seconds) {
+  return SteadyClock::time_point(
+      std::chrono::duration_cast<SteadyClock::duration>(std::chrono::duration<double>(seconds)));
+}
+
+// The rounded mean of served[end - k + 1 .. end] at the fingerprint pixels, computed as
+// CapturePress averages (float sums, convertTo with 1/K: round half to even, saturate).
+Fingerprint WindowMean(const std::vector<ServedFrame>& served, std::size_t end, int k) {
+  cv::Mat sum = cv::Mat::zeros(1, kFingerprintPixels, CV_32FC3);
+  for (std::size_t i = end + 1 - static_cast<std::size_t>(k); i <= end; ++i) {
+    const cv::Mat frame(1, kFingerprintPixels, CV_8UC3,
+                        const_cast<std::uint8_t*>(served[i].fingerprint.data()));
+    cv::accumulate(frame, sum);
+  }
+  Fingerprint out{};
+  cv::Mat mean(1, kFingerprintPixels, CV_8UC3, out.data());
+  sum.convertTo(mean, CV_8U, 1.0 / k);
+  return out;
+}
+
+std::uint64_t Key(const Fingerprint& f) {
+  return Hasher().Add(f.data(), f.size()).Digest();
+}
+
+}  // namespace
+
+void CaptureTruthOptions::Check() const {
+  if (!(tolerance_mm > 0.0)) {
+    throw std::invalid_argument("CaptureTruthOptions.tolerance_mm must be > 0, got " +
+                                std::to_string(tolerance_mm));
+  }
+  if (unix_minus_steady_s && !std::isfinite(*unix_minus_steady_s)) {
+    throw std::invalid_argument("CaptureTruthOptions.unix_minus_steady_s must be finite, got " +
+                                std::to_string(*unix_minus_steady_s));
+  }
+}
+
+CaptureTruth CheckCapturesAgainstTruth(const VirtualRig& rig, const RunDatabase& db,
+                                       std::int64_t run_id, const CaptureTruthOptions& options) {
+  options.Check();
+  const std::optional<RunRecord> run = db.GetRun(run_id);
+  if (!run) {
+    throw std::runtime_error("CheckCapturesAgainstTruth: no run " + std::to_string(run_id) +
+                             " in " + db.path().string());
+  }
+  const std::string where = db.path().string() + ", run " + std::to_string(run_id);
+  const int k = RunConfigFromJson(ParseJsonText(run->config_json, where), where)
+                    .camera.capture.frames_to_average;
+  const double check_offset = options.unix_minus_steady_s.value_or(
+      std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count() -
+      Seconds(SteadyClock::now()));
+
+  // Every window of k consecutive served frames, by the hash of its rounded mean.
+  const std::vector<ServedFrame> served = rig.ServedFrames();
+  std::unordered_multimap<std::uint64_t, std::size_t> windows;  // -> index of the last frame
+  for (std::size_t end = static_cast<std::size_t>(k) - 1; end < served.size(); ++end) {
+    windows.emplace(Key(WindowMean(served, end, k)), end);
+  }
+
+  const VirtualCnc& cnc = rig.cnc();
   CaptureTruth truth;
   for (const CapturedProbe& c : db.ListCapturedProbes(run_id)) {
     ++truth.frames;
-    Eigen::Vector3d at_frame, at_sync;
-    try {
-      at_frame = cnc.TruePosition(to_steady(c.frame_time));
-      at_sync = cnc.TruePosition(to_steady(*c.probe.sync_time));
-    } catch (const std::out_of_range&) {
+    const int index = c.probe.plan_index;
+    const Fingerprint stored = FrameFingerprint(db.LoadFrame(c.frame_id));
+    // The served window with exactly this content; among identical ones (a noise-free camera),
+    // the one nearest in time to where the check-time clock offset puts the stored frame.
+    std::optional<std::size_t> match;
+    const double hint = c.frame_time - check_offset;
+    const auto [first, last] = windows.equal_range(Key(stored));
+    for (auto it = first; it != last; ++it) {
+      if (WindowMean(served, it->second, k) != stored) continue;  // a hash collision
+      if (!match || std::abs(Seconds(served[it->second].timestamp) - hint) <
+                        std::abs(Seconds(served[*match].timestamp) - hint)) {
+        match = it->second;
+      }
+    }
+    if (!match) {
       ++truth.unverified;
+      truth.unverified_plan_indices.push_back(index);
       continue;
     }
-    const double err = std::max((at_frame - c.probe.plan.press_machine).norm(),
-                                (at_sync - c.probe.plan.press_machine).norm());
+    const ServedFrame& last_frame = served[*match];
+    // The offset of the session that stored this frame: its Unix frame time is the steady
+    // timestamp of the last averaged frame, mapped with that session's offset.
+    const double session_offset = c.frame_time - Seconds(last_frame.timestamp);
+    truth.max_clock_skew_s =
+        std::max(truth.max_clock_skew_s, std::abs(session_offset - check_offset));
+    const Eigen::Vector3d& press = c.probe.plan.press_machine;
+    double err = 0.0;
+    try {
+      for (std::size_t i = *match + 1 - static_cast<std::size_t>(k); i <= *match; ++i) {
+        const ServedFrame& f = served[i];
+        err = std::max(err, (f.machine_position - press).norm());
+        err = std::max(err, (cnc.TruePosition(f.timestamp - f.exposure) - press).norm());
+      }
+      const double sync = *c.probe.sync_time - session_offset;
+      err = std::max(err, (cnc.TruePosition(SteadyAt(sync)) - press).norm());
+    } catch (const std::out_of_range&) {
+      ++truth.unverified;
+      truth.unverified_plan_indices.push_back(index);
+      continue;
+    }
     truth.max_error_mm = std::max(truth.max_error_mm, err);
-    if (err > tolerance_mm) ++truth.off_target;
+    if (err > options.tolerance_mm) {
+      ++truth.off_target;
+      truth.off_target_plan_indices.push_back(index);
+    }
     if (c.probe.machine_position) {
       truth.max_reported_error_mm =
-          std::max(truth.max_reported_error_mm, (*c.probe.machine_position - at_frame).norm());
+          std::max(truth.max_reported_error_mm,
+                   (*c.probe.machine_position - last_frame.machine_position).norm());
     }
   }
   return truth;

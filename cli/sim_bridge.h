@@ -31,21 +31,51 @@ VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t
 
 }  // namespace gs360::cli
 
+#include <optional>
+#include <vector>
+
 #include "storage/run_database.h"
 
 namespace gs360::cli {
 
-// Ground-truth check of an acquisition on the virtual rig: for every captured probe, where the
-// virtual CNC truly was at its sync time and at its frame time, against the planned press
-// position. Times are converted from the stored Unix seconds with this process's clock offset.
+// Ground-truth check of an acquisition on the virtual rig. Each stored press frame is matched,
+// by content alone, to the K consecutive frames the rig's camera served whose rounded mean it is
+// (K = the run's camera.capture.frames_to_average; ServedFrame fingerprints, sim/virtual_rig.h),
+// so no clock conversion is involved. The frame is on target when the true tool position was
+// within tolerance of the planned press point at the exposure start and end of each of those K
+// frames and at the sync `ok`. The sync time is mapped onto the steady clock with the offset of
+// the session that took the frame (its stored frame time minus the matched frame's steady
+// timestamp), not with the offset of the clock at check time. Assumes one client read the
+// rig's camera at a time (the daemon), so a capture's frames are consecutive in the log.
+struct CaptureTruthOptions {
+  double tolerance_mm = 0.005;  // > 0
+  // System-minus-steady clock offset (s) assumed at check time: it only picks the nearest in
+  // time among served windows of identical content (noise-free camera) and sets
+  // CaptureTruth::max_clock_skew_s. Default: measured when the check runs. Tests inject one.
+  std::optional<double> unix_minus_steady_s;
+  // Throws std::invalid_argument naming the field and its value.
+  void Check() const;
+};
+
 struct CaptureTruth {
   int frames = 0;
-  int off_target = 0;         // frames with the tool further than tolerance from the press point
-  int unverified = 0;         // frames older than the virtual CNC's kept motion history
-  double max_error_mm = 0.0;  // largest |true - planned press| at sync or frame time
+  int off_target = 0;  // frames with the tool further than tolerance from the press point
+  // Frames that cannot be checked: no served window matches the stored image (older than the
+  // rig's frame log, or not served by this rig), or older than the CNC's motion history.
+  int unverified = 0;
+  double max_error_mm = 0.0;           // largest |true - planned press| over the checked instants
   double max_reported_error_mm = 0.0;  // largest |reported MPos - true position| at frame time
+  // Largest |system-minus-steady offset of the session that stored a frame - the check-time
+  // offset|: how far the two clocks moved apart between the acquisition and the check.
+  double max_clock_skew_s = 0.0;
+  std::vector<int> off_target_plan_indices;  // plan order
+  std::vector<int> unverified_plan_indices;  // plan order
 };
-CaptureTruth CheckCapturesAgainstTruth(const VirtualCnc& cnc, const RunDatabase& db,
-                                       std::int64_t run_id, double tolerance_mm = 0.005);
+// Throws std::invalid_argument for invalid options, std::runtime_error for an unknown run,
+// StorageError for a frame that cannot be read, ConfigError for a stored configuration that
+// does not parse.
+CaptureTruth CheckCapturesAgainstTruth(const VirtualRig& rig, const RunDatabase& db,
+                                       std::int64_t run_id,
+                                       const CaptureTruthOptions& options = {});
 
 }  // namespace gs360::cli

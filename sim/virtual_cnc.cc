@@ -42,16 +42,28 @@ constexpr auto kHupPollInterval = std::chrono::milliseconds(20);
 // jumps whenever the controller completes motion or a dwell.
 class MachineClock {
  public:
-  MachineClock(double scale, Clock::time_point start) : scale_(scale) {
+  // `history`: jumps kept (instant mode); older wall instants cannot be mapped any more.
+  MachineClock(double scale, Clock::time_point start, std::size_t history)
+      : scale_(scale), history_(history) {
     segments_.push_back({start, 0.0});
   }
 
   bool instant() const { return scale_ <= 0.0; }
+  std::uint64_t jumps() const { return jumps_; }
 
+  // Throws std::out_of_range for a wall instant before the oldest kept jump (instant mode, once
+  // jumps were evicted): the machine time there is no longer known.
   double At(Clock::time_point w) const {
     auto it =
         std::upper_bound(segments_.begin(), segments_.end(), w,
                          [](Clock::time_point value, const Segment& s) { return value < s.wall; });
+    if (it == segments_.begin() && truncated_) {
+      throw std::out_of_range(
+          "VirtualCnc: wall instant " +
+          std::to_string(std::chrono::duration<double>(segments_.front().wall - w).count()) +
+          " s before the oldest of the " + std::to_string(segments_.size()) +
+          " instant-mode clock jumps kept; raise history_pieces");
+    }
     if (it != segments_.begin()) --it;
     if (instant()) return it->machine;
     return it->machine + std::chrono::duration<double>(w - it->wall).count() * scale_;
@@ -68,7 +80,11 @@ class MachineClock {
   void JumpTo(Clock::time_point w, double m) {
     if (!instant() || m <= At(w)) return;
     segments_.push_back({w, m});
-    while (segments_.size() > 65536) segments_.pop_front();
+    ++jumps_;
+    while (segments_.size() > history_) {
+      segments_.pop_front();
+      truncated_ = true;
+    }
   }
 
  private:
@@ -77,7 +93,10 @@ class MachineClock {
     double machine;
   };
   double scale_;
+  std::size_t history_;
   std::deque<Segment> segments_;
+  bool truncated_ = false;  // segments were evicted: instants before front() are unknown
+  std::uint64_t jumps_ = 0;
 };
 
 std::string StatusLine(int code) {
@@ -185,7 +204,9 @@ class VirtualCnc::Impl {
   }
   VirtualCncStats Stats() const {
     std::lock_guard<std::mutex> lk(mu_);
-    return stats_;
+    VirtualCncStats stats = stats_;
+    stats.clock_jumps = clock_.jumps();
+    return stats;
   }
 
   void DropNextBytes(std::size_t n, FaultDirection d) {
@@ -380,7 +401,7 @@ class VirtualCnc::Impl {
 
 VirtualCnc::Impl::Impl(const VirtualCncOptions& options)
     : options_(options),
-      clock_(options.time_scale, Clock::now()),
+      clock_(options.time_scale, Clock::now(), options.history_pieces),
       exec_(MotionExecutor::Options{options.planner_blocks, options.history_pieces},
             options.initial_true_position, 0.0),
       settings_(options.settings),

@@ -99,10 +99,12 @@ struct VirtualCncOptions {
   bool report_wco_and_overrides = true;
   // Largest per-axis belief error (mm) when position is lost (LosePositionOnReset).
   double lost_position_max_mm = 0.5;
-  // Executed motion pieces kept for TruePosition(); older times throw std::out_of_range once
-  // pieces were evicted (about 6-8 pieces per calibration probe).
+  // Executed motion pieces kept for TruePosition(), and in instant mode as many jumps of the
+  // machine clock (one per executed motion batch and per 50 ms dwell step: about 9 per
+  // calibration probe with a 0.3 s settle dwell, see VirtualCncStats::clock_jumps). Older times
+  // throw std::out_of_range once either was evicted.
   std::size_t history_pieces = 1u << 15;
-  std::uint64_t seed = 1;                 // fault-injection randomness
+  std::uint64_t seed = 1;  // fault-injection randomness
 
   // Throws std::invalid_argument naming the field and its value.
   void Check() const;
@@ -129,6 +131,7 @@ struct VirtualCncStats {
   std::uint64_t resets = 0;  // soft resets (0x18 and internal)
   std::uint64_t boots = 0;   // power-ups
   std::uint64_t blocks_planned = 0;
+  std::uint64_t clock_jumps = 0;  // instant mode: machine-clock jumps recorded so far
 };
 
 class VirtualCnc {
@@ -153,7 +156,8 @@ class VirtualCnc {
   // --- Ground truth ---
   // Tool position (true machine frame, mm) at a steady_clock instant: exact interpolation of the
   // executed profile for the past (as far back as the kept history), the current plan's
-  // prediction for the future.
+  // prediction for the future. Throws std::out_of_range for an instant older than the kept
+  // history (history_pieces); so do TrueSpeed, TrueTrajectory and MachineTime.
   Eigen::Vector3d TruePosition(Clock::time_point t) const;
   Eigen::Vector3d TruePositionNow() const { return TruePosition(Clock::now()); }
   double TrueSpeed(Clock::time_point t) const;  // mm/s

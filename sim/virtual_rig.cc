@@ -2,10 +2,14 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <numbers>
 #include <stdexcept>
 #include <thread>
+
+#include "sim/ground_truth.h"
 
 namespace gs360 {
 
@@ -26,6 +30,40 @@ void VirtualRigOptions::Check() const {
     throw std::invalid_argument("VirtualRigOptions.min_frame_period_s must be > 0, got " +
                                 std::to_string(min_frame_period_s));
   }
+}
+
+std::vector<cv::Point> FingerprintPixels(int width, int height) {
+  if (width <= 0 || height <= 0) {
+    throw std::invalid_argument("FingerprintPixels: size must be positive, got " +
+                                std::to_string(width) + "x" + std::to_string(height));
+  }
+  const double radius = 0.4 * std::min(width, height);
+  const double golden_angle = std::numbers::pi * (3.0 - std::sqrt(5.0));
+  std::vector<cv::Point> pixels;
+  pixels.reserve(kFingerprintPixels);
+  for (int i = 0; i < kFingerprintPixels; ++i) {
+    const double r = radius * std::sqrt((i + 0.5) / kFingerprintPixels);
+    const double a = golden_angle * i;
+    const int x =
+        std::clamp(static_cast<int>(std::lround(0.5 * width + r * std::cos(a))), 0, width - 1);
+    const int y =
+        std::clamp(static_cast<int>(std::lround(0.5 * height + r * std::sin(a))), 0, height - 1);
+    pixels.emplace_back(x, y);
+  }
+  return pixels;
+}
+
+std::array<std::uint8_t, 3 * kFingerprintPixels> FrameFingerprint(const cv::Mat& image) {
+  if (image.empty() || image.type() != CV_8UC3) {
+    throw std::invalid_argument("FrameFingerprint: expected a non-empty CV_8UC3 image");
+  }
+  std::array<std::uint8_t, 3 * kFingerprintPixels> out{};
+  const std::vector<cv::Point> pixels = FingerprintPixels(image.cols, image.rows);
+  for (int i = 0; i < kFingerprintPixels; ++i) {
+    const cv::Vec3b& bgr = image.at<cv::Vec3b>(pixels[i]);
+    for (int c = 0; c < 3; ++c) out[3 * i + c] = bgr[c];
+  }
+  return out;
 }
 
 VirtualRig::VirtualRig(const VirtualRigOptions& options) : options_(options) {
@@ -74,7 +112,23 @@ Frame VirtualRig::NextFrame() {
   frame.exposure = std::chrono::microseconds(static_cast<long long>(exposure_s * 1e6));
   frame.sequence = k;
   ++frame_index_;
+  if (options_.frame_log_capacity > 0) {
+    ServedFrame record;
+    record.sequence = frame.sequence;
+    record.timestamp = frame.timestamp;
+    record.exposure = frame.exposure;
+    record.machine_position = *SimGroundTruth::LastFrame(*camera_).machine_position;
+    record.fingerprint = FrameFingerprint(frame.image);
+    std::lock_guard<std::mutex> lock(log_mutex_);
+    served_.push_back(record);
+    while (served_.size() > options_.frame_log_capacity) served_.pop_front();
+  }
   return frame;
+}
+
+std::vector<ServedFrame> VirtualRig::ServedFrames() const {
+  std::lock_guard<std::mutex> lock(log_mutex_);
+  return {served_.begin(), served_.end()};
 }
 
 }  // namespace gs360

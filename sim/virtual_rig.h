@@ -4,11 +4,18 @@
 // frame's time. Production code reaches it only through its pty path and "socket:" frame URI,
 // exactly as it reaches real hardware. For tests, the demo and benchmarks.
 
+#include <array>
 #include <chrono>
+#include <cstdint>
+#include <deque>
 #include <filesystem>
 #include <memory>
 #include <mutex>
 #include <string>
+#include <vector>
+
+#include <Eigen/Core>
+#include <opencv2/core.hpp>
 
 #include "capture/frame_server.h"
 #include "sim/rig_model.h"
@@ -27,8 +34,34 @@ struct VirtualRigOptions {
   double exposure_s = 0.004;           // machine time
   double min_frame_period_s = 0.002;   // wall-time floor for fast time scales
   std::filesystem::path frame_socket;  // empty: a unique path in the temp directory
+  // ServedFrame records kept (the oldest are dropped beyond this; 0 keeps none). ~250 bytes each.
+  std::size_t frame_log_capacity = 1u << 16;
   void Check() const;
 };
+
+// Pixels whose values a ServedFrame keeps: enough to recognise a frame, or the rounded mean of
+// consecutive frames, by content alone (camera noise makes every frame's values unique).
+inline constexpr int kFingerprintPixels = 64;
+
+// One frame the rig's camera served, in serving order: ground truth for checking captures
+// (cli/sim_bridge.h, CheckCapturesAgainstTruth).
+struct ServedFrame {
+  std::uint64_t sequence = 0;                         // Frame::sequence
+  std::chrono::steady_clock::time_point timestamp{};  // exposure end, as served (Frame::timestamp)
+  std::chrono::microseconds exposure{0};              // Frame::exposure
+  // The tool's true position (machine frame, mm) the frame was rendered at (exposure end).
+  Eigen::Vector3d machine_position = Eigen::Vector3d::Zero();
+  // B, G, R of the image at FingerprintPixels(width, height), pixel by pixel.
+  std::array<std::uint8_t, 3 * kFingerprintPixels> fingerprint{};
+};
+
+// The kFingerprintPixels pixels (x, y) a ServedFrame keeps for a width x height image: a
+// golden-angle spiral over the central disc (radius 0.4 min(width, height)), where the gel is.
+// Throws std::invalid_argument for a non-positive size.
+std::vector<cv::Point> FingerprintPixels(int width, int height);
+// The values of `image` (CV_8UC3) at those pixels, as in ServedFrame::fingerprint. Throws
+// std::invalid_argument for another type or an empty image.
+std::array<std::uint8_t, 3 * kFingerprintPixels> FrameFingerprint(const cv::Mat& image);
 
 class VirtualRig {
  public:
@@ -41,12 +74,14 @@ class VirtualRig {
   std::string PtyPath() const { return cnc_->PtyPath(); }
   std::string FrameUri() const { return "socket:" + socket_path_.string(); }
   VirtualCnc& cnc() { return *cnc_; }
+  const VirtualCnc& cnc() const { return *cnc_; }
   TactileCamera& camera() { return *camera_; }
   std::shared_ptr<const SimRig> rig() const { return rig_; }
   const VirtualRigOptions& options() const { return options_; }
 
-  // Ball centre (sensor frame) of every frame served so far is NOT kept; tests that need the
-  // truth per frame ask the CNC's TruePosition at the frame's timestamp.
+  // The frames served so far, oldest first: the latest options().frame_log_capacity of them.
+  // Thread-safe.
+  std::vector<ServedFrame> ServedFrames() const;
 
  private:
   Frame NextFrame();
@@ -58,6 +93,8 @@ class VirtualRig {
   std::filesystem::path socket_path_;
   std::chrono::steady_clock::time_point clock_start_;
   std::uint64_t frame_index_ = 0;
+  mutable std::mutex log_mutex_;
+  std::deque<ServedFrame> served_;
   std::unique_ptr<FrameServer> server_;
 };
 

@@ -107,7 +107,7 @@ TEST_CASE("SIGKILL at random moments, resume, and every reachable probe has exac
   CHECK(static_cast<std::int64_t>(frames.size()) == total);
   std::set<std::int64_t> probes;
   for (const auto& fr : frames) CHECK(probes.insert(*fr.probe_id).second);
-  const cli::CaptureTruth truth = cli::CheckCapturesAgainstTruth(f.rig->cnc(), db, 1);
+  const cli::CaptureTruth truth = cli::CheckCapturesAgainstTruth(*f.rig, db, 1);
   CHECK(truth.frames == total);
   CHECK(truth.off_target == 0);
   CHECK(truth.unverified == 0);

@@ -28,7 +28,7 @@ void CheckCommitted(RigFixture& f, std::int64_t run_id) {
     CHECK(probes.insert(*fr.probe_id).second);  // never two frames for one probe
   }
   CHECK(db.IntegrityCheck().empty());
-  const cli::CaptureTruth truth = cli::CheckCapturesAgainstTruth(f.rig->cnc(), db, run_id);
+  const cli::CaptureTruth truth = cli::CheckCapturesAgainstTruth(*f.rig, db, run_id);
   CHECK(truth.frames == static_cast<int>(captured.size()));
   CHECK(truth.off_target == 0);
   CHECK(truth.unverified == 0);
