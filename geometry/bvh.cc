@@ -1,9 +1,9 @@
 #include "geometry/bvh.h"
 
 #include <algorithm>
-#include <array>
 #include <chrono>
 #include <cmath>
+#include <cstddef>
 #include <cstdlib>
 #include <cstring>
 #include <new>
@@ -25,6 +25,27 @@ namespace {
 // 3 entries, so the traversal stack never exceeds 3 * 95 < kStackSize.
 constexpr int kMedianDepth = 64;
 constexpr int kStackSize = 320;
+constexpr int kWordsPerLine = 8;  // 8-byte words per 64-byte line
+// A child's block is prefetched up to this many lines (its node and first leaves).
+constexpr int kMaxPrefetchLines = 32;
+// At most 64 triangles per leaf, so at most 192 distinct vertices.
+constexpr int kMaxLeafVertices = 192;
+// Word offsets in Bvh::lines_: a never-hit leaf (one degenerate triangle) that empty node slots
+// point to, then the root's block.
+constexpr std::int32_t kEmptyLeaf = 0;
+constexpr std::int32_t kRoot = kWordsPerLine;
+
+// Bytes of a leaf record (see Bvh::Line) with nt triangles and m (even) vertex slots: header
+// word, x[m], y[m], z[m], triangle[nt], corner[nt][3], padding to 8 bytes.
+std::size_t LeafBytes(int nt, int m) {
+  return (8 + 24 * static_cast<std::size_t>(m) + 7 * static_cast<std::size_t>(nt) + 7) / 8 * 8;
+}
+// A leaf record's vertex normals, double[nv][3] (header bytes 4..7: their offset in words).
+const unsigned char* LeafNormals(const unsigned char* leaf) {
+  std::int32_t at;
+  std::memcpy(&at, leaf + 4, sizeof(at));
+  return leaf + 8 * static_cast<std::ptrdiff_t>(at);
+}
 
 struct Box {
   Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
@@ -48,11 +69,13 @@ struct Box {
 // 4-lane float vectors (GCC/Clang vector extensions: SSE on x86, NEON on ARM).
 typedef float F4 __attribute__((vector_size(16)));
 typedef std::int32_t I4 __attribute__((vector_size(16)));
+// 2-lane double vectors (SSE2 on x86-64, NEON on AArch64) for the leaves' vertices.
+typedef double D2 __attribute__((vector_size(16)));
 
 inline F4 Splat(float v) {
   return F4{v, v, v, v};
 }
-inline F4 Load(const float* p) {
+inline F4 LoadBytes(const unsigned char* p) {
   F4 v;
   std::memcpy(&v, p, sizeof(v));
   return v;
@@ -63,9 +86,6 @@ inline F4 Min(F4 a, F4 b) {
 inline F4 Max(F4 a, F4 b) {
   return a > b ? a : b;
 }
-inline F4 Abs(F4 a) {
-  return a < 0.0f ? -a : a;
-}
 // Bit k set when lane k of the comparison result `m` (all ones / all zeros) is set.
 inline unsigned MoveMask(I4 m) {
 #if defined(__SSE2__)
@@ -75,6 +95,17 @@ inline unsigned MoveMask(I4 m) {
 #endif
 }
 
+inline D2 Splat2(double v) {
+  return D2{v, v};
+}
+inline D2 Load2(const unsigned char* p) {
+  D2 v;
+  std::memcpy(&v, p, sizeof(v));
+  return v;
+}
+inline void Store2(double* p, D2 v) {
+  std::memcpy(p, &v, sizeof(v));
+}
 float RoundDown(double v) {
   float f = static_cast<float>(v);
   if (static_cast<double>(f) > v) f = std::nextafter(f, -std::numeric_limits<float>::infinity());
@@ -225,28 +256,6 @@ struct WatertightRay {
     sy = d[ky] / d[kz];
     sz = 1.0 / d[kz];
   }
-
-  // On a hit with t in [t_min, t_max] writes t and the barycentrics of v1, v2.
-  bool Intersect(const Eigen::Vector3d& v0, const Eigen::Vector3d& v1, const Eigen::Vector3d& v2,
-                 double t_min, double t_max, double* t, double* b1, double* b2) const {
-    const Eigen::Vector3d a = v0 - origin, b = v1 - origin, c = v2 - origin;
-    const double ax = a[kx] - sx * a[kz], ay = a[ky] - sy * a[kz];
-    const double bx = b[kx] - sx * b[kz], by = b[ky] - sy * b[kz];
-    const double cx = c[kx] - sx * c[kz], cy = c[ky] - sy * c[kz];
-    const double u = cx * by - cy * bx;
-    const double v = ax * cy - ay * cx;
-    const double w = bx * ay - by * ax;
-    if ((u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0)) return false;
-    const double det = u + v + w;
-    if (det == 0.0) return false;
-    const double az = sz * a[kz], bz = sz * b[kz], cz = sz * c[kz];
-    const double tt = (u * az + v * bz + w * cz) / det;
-    if (!(tt >= t_min && tt <= t_max)) return false;
-    *t = tt;
-    *b1 = v / det;
-    *b2 = w / det;
-    return true;
-  }
 };
 
 }  // namespace
@@ -342,7 +351,6 @@ Bvh::Bvh(const TriangleMesh& mesh, const BvhOptions& options) : mesh_(mesh) {
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     return;
   }
-  max_abs_coordinate_ = max_abs;
   Builder builder{options, {}, {}, order};
   builder.tri_box.resize(nt);
   builder.centroid.resize(nt);
@@ -355,41 +363,85 @@ Bvh::Bvh(const TriangleMesh& mesh, const BvhOptions& options) : mesh_(mesh) {
   builder.nodes.reserve(2 * n / std::max(1, options.max_leaf_size) + 1);
   builder.Build(0, n, 0);
 
-  // Appends the triangles order[begin, end) as packs of four; returns the first pack.
-  std::vector<std::int32_t> record_of(nv, -1);  // mesh vertex -> vertices_ index
-  auto add_leaf = [&](int begin, int end) {
-    const int first = static_cast<int>(packs_.size());
-    for (int p = begin; p < end; p += 4) {
-      TrianglePack4 pack;
-      for (int lane = 0; lane < 4; ++lane) {
-        // Padding lanes repeat the first triangle (masked out by the leaf's count).
-        const int t = order[p + lane < end ? p + lane : p];
-        triangle_.push_back(p + lane < end ? t : -1);
-        for (int j = 0; j < 3; ++j) {
-          const int mv = mesh_.triangles[t][j];
-          if (record_of[mv] < 0) {
-            record_of[mv] = static_cast<std::int32_t>(vertices_.size());
-            vertices_.push_back({mesh_.vertices[mv], mesh_.normals[mv]});
-          }
-          pack.vertex[j][lane] = record_of[mv];
-          for (int a = 0; a < 3; ++a)
-            pack.v[j][a][lane] = static_cast<float>(mesh_.vertices[mv][a]);
-        }
-      }
-      packs_.push_back(pack);
-    }
-    return first;
+  // Serialise into lines_, in 8-byte words: the empty leaf, then depth first one block per 4-wide
+  // node: the Node4, the records of its leaf children, their normals. Capacity for the largest
+  // possible size is reserved (untouched pages cost nothing), so lines_ never moves.
+  std::size_t capacity = 16 * static_cast<std::size_t>(builder.nodes.size() + 2);  // nodes
+  for (const auto& bn : builder.nodes) {
+    if (bn.count > 0) capacity += 32 + 19 * static_cast<std::size_t>(bn.count);  // leaf, padding
+  }
+  lines_.reserve(capacity / kWordsPerLine + 1);
+  std::size_t used = 0;  // words
+  auto word = [&](std::size_t at) { return lines_.data()->bytes + 8 * at; };
+  auto grow = [&](std::size_t words) {  // appends zero words; returns the first one's offset
+    const std::size_t at = used;
+    used += words;
+    if (used > lines_.size() * kWordsPerLine)
+      lines_.resize((used + kWordsPerLine - 1) / kWordsPerLine);
+    return at;
   };
+  auto align_line = [&] { grow((kWordsPerLine - used % kWordsPerLine) % kWordsPerLine); };
+  // Leaves of the current block whose normals are still to be appended: (record, first vertex
+  // in pending_vertices).
+  std::vector<std::pair<std::size_t, std::size_t>> pending_normals;
+  std::vector<int> pending_vertices;
+  std::vector<std::uint8_t> corner;
+  // Appends a leaf record for the triangles `tris` (mesh indices); returns its word offset.
+  auto add_leaf = [&](const std::int32_t* tris, int leaf_nt) {
+    const std::size_t first = pending_vertices.size();
+    corner.resize(3 * leaf_nt);
+    for (int i = 0; i < leaf_nt; ++i) {
+      for (int j = 0; j < 3; ++j) {
+        const int mv = mesh_.triangles[tris[i]][j];
+        const auto begin = pending_vertices.begin() + static_cast<std::ptrdiff_t>(first);
+        const auto it = std::find(begin, pending_vertices.end(), mv);
+        corner[3 * i + j] = static_cast<std::uint8_t>(it - begin);
+        if (it == pending_vertices.end()) pending_vertices.push_back(mv);
+      }
+    }
+    const int n_v = static_cast<int>(pending_vertices.size() - first);
+    const int m = n_v + (n_v & 1);
+    const std::size_t at = grow(LeafBytes(leaf_nt, m) / 8);
+    unsigned char* rec = word(at);
+    rec[0] = static_cast<unsigned char>(n_v);
+    rec[1] = static_cast<unsigned char>(leaf_nt);
+    for (int a = 0; a < 3; ++a) {
+      for (int i = 0; i < m; ++i) {  // an odd count repeats the last vertex
+        const int v = pending_vertices[first + static_cast<std::size_t>(std::min(i, n_v - 1))];
+        std::memcpy(rec + 8 + 8 * (a * m + i), &mesh_.vertices[v][a], sizeof(double));
+      }
+    }
+    unsigned char* tri = rec + 8 + 24 * m;
+    std::memcpy(tri, tris, 4 * static_cast<std::size_t>(leaf_nt));
+    std::memcpy(tri + 4 * leaf_nt, corner.data(), corner.size());
+    pending_normals.emplace_back(at, first);
+    return static_cast<std::int32_t>(at);
+  };
+  // The empty leaf: one vertex (at the origin) and one triangle whose three corners are that
+  // vertex, so u = v = w = 0 (or NaN): never a hit. It has no normals (never read). Empty node
+  // slots point to it, so that entering one (NaN box tests from absurd rays) is harmless.
+  {
+    static_assert(kEmptyLeaf == 0 && kRoot == kWordsPerLine);  // the record is one line
+    unsigned char* rec = word(grow(LeafBytes(1, 2) / 8));
+    rec[0] = 1;  // vertices; then x, y, z[2] = 0, triangle[1] = -1, corner[1][3] = 0
+    rec[1] = 1;  // triangles
+    const std::int32_t none = -1;
+    std::memcpy(rec + 8 + 24 * 2, &none, sizeof(none));
+  }
 
   // Collapse the binary tree into 4-wide nodes, depth first: each node takes up to four
-  // descendants, opening the inner candidate with the largest box surface first. Leaves get
-  // their packs in the same depth-first order.
+  // descendants, opening the inner candidate with the largest box surface first.
   const auto& bnodes = builder.nodes;
-  std::vector<std::pair<int, int>> todo = {{0, 0}};  // (binary node, Node4 index)
-  nodes_.emplace_back();
+  struct Todo {
+    int binary;           // binary node
+    std::int32_t parent;  // word offset of the parent Node4, -1 for the root
+    int slot;             // slot in the parent
+  };
+  std::vector<Todo> todo = {{0, -1, 0}};
   while (!todo.empty()) {
-    const auto [b, n4] = todo.back();
+    const Todo item = todo.back();
     todo.pop_back();
+    const int b = item.binary;
     std::vector<int> slots;
     if (bnodes[b].count > 0) {
       slots.push_back(b);  // the whole tree is one leaf
@@ -411,14 +463,17 @@ Bvh::Bvh(const TriangleMesh& mesh, const BvhOptions& options) : mesh_(mesh) {
         slots.insert(slots.begin() + open + 1, bnodes[opened].index);
       }
     }
+    const std::size_t offset = grow(sizeof(Node4) / 8);
     Node4 node{};
     for (int k = 0; k < 4; ++k) {
       if (k >= static_cast<int>(slots.size())) {
-        // Empty slot: child = -1 masks it out (NaN box for good measure).
-        node.lo_x[k] = node.lo_y[k] = node.lo_z[k] = std::numeric_limits<float>::quiet_NaN();
-        node.hi_x[k] = node.hi_y[k] = node.hi_z[k] = std::numeric_limits<float>::quiet_NaN();
-        node.child[k] = -1;
-        node.count[k] = 0;
+        // Empty slot: an inverted infinite box, never entered (its near plane is at +inf and
+        // its far plane at -inf whatever the ray's direction).
+        constexpr float kInf = std::numeric_limits<float>::infinity();
+        node.lo_x[k] = node.lo_y[k] = node.lo_z[k] = kInf;
+        node.hi_x[k] = node.hi_y[k] = node.hi_z[k] = -kInf;
+        node.child[k] = kEmptyLeaf;
+        node.count[k] = 1;
         continue;
       }
       const auto& c = bnodes[slots[k]];
@@ -429,36 +484,61 @@ Bvh::Bvh(const TriangleMesh& mesh, const BvhOptions& options) : mesh_(mesh) {
       node.hi_y[k] = RoundUp(c.box.hi.y() + pad);
       node.hi_z[k] = RoundUp(c.box.hi.z() + pad);
       if (c.count > 0) {
-        node.child[k] = add_leaf(c.index, c.index + c.count);
+        node.child[k] = add_leaf(&order[c.index], c.count);
         node.count[k] = c.count;
         ++stats_.leaves;
       } else {
-        node.child[k] = static_cast<std::int32_t>(nodes_.size());
-        node.count[k] = 0;
-        nodes_.emplace_back();
-        todo.emplace_back(slots[k], node.child[k]);
+        // Child and count are set when its block is laid out.
+        todo.push_back({slots[k], static_cast<std::int32_t>(offset), k});
       }
     }
-    nodes_[n4] = node;
+    std::memcpy(word(offset), &node, sizeof(node));
+    // The prefetched part of the block ends here; the leaves' normals follow (read only for a
+    // final hit, and prefetched when their leaf is entered).
+    const auto lines = static_cast<std::int32_t>(std::min<std::size_t>(
+        (used - offset + kWordsPerLine - 1) / kWordsPerLine, kMaxPrefetchLines));
+    for (std::size_t i = 0; i < pending_normals.size(); ++i) {
+      const auto [leaf, first] = pending_normals[i];
+      const std::size_t end =
+          i + 1 < pending_normals.size() ? pending_normals[i + 1].second : pending_vertices.size();
+      const auto at = static_cast<std::int32_t>(used - leaf);
+      std::memcpy(word(leaf) + 4, &at, sizeof(at));
+      for (std::size_t v = first; v < end; ++v)
+        std::memcpy(word(grow(3)), mesh_.normals[pending_vertices[v]].data(), 24);
+    }
+    pending_normals.clear();
+    pending_vertices.clear();
+    align_line();
+    ++stats_.nodes;
+    if (item.parent >= 0) {
+      const auto child = static_cast<std::int32_t>(offset);
+      const std::int32_t count = -lines;
+      unsigned char* parent = word(static_cast<std::size_t>(item.parent));
+      std::memcpy(parent + offsetof(Node4, child) + 4 * item.slot, &child, sizeof(child));
+      std::memcpy(parent + offsetof(Node4, count) + 4 * item.slot, &count, sizeof(count));
+    }
   }
-  packs_.shrink_to_fit();
-  vertices_.shrink_to_fit();
-  triangle_.shrink_to_fit();
-  stats_.nodes = static_cast<int>(nodes_.size());
+  if (used > static_cast<std::size_t>(std::numeric_limits<std::int32_t>::max())) {
+    throw std::length_error("Bvh: " + std::to_string(nt) +
+                            " triangles need more than 16 GiB of tree (32-bit offsets)");
+  }
   stats_.max_depth = builder.max_depth;
   stats_.build_seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
 template <bool kAnyHit>
-int Bvh::Traverse(const Ray& ray, double t_min, double t_max, double* best_t, double* best_b1,
-                  double* best_b2) const {
-  if (packs_.empty()) return -1;
+Bvh::HitSlot Bvh::Traverse(const Ray& ray, double t_min, double t_max, double* best_t,
+                           double* best_b1, double* best_b2) const {
+  HitSlot best_slot;
+  if (lines_.empty()) return best_slot;
   const Eigen::Vector3d& d = ray.direction;
-  if (!ray.origin.allFinite() || !d.allFinite() || d.squaredNorm() == 0.0) return -1;
-  if (!(t_max >= t_min)) return -1;
+  if (!ray.origin.allFinite() || !d.allFinite() || d.squaredNorm() == 0.0) return best_slot;
+  if (!(t_max >= t_min)) return best_slot;
   const WatertightRay wray(ray);
+  const unsigned char* const base = lines_.data()->bytes;
 
+  // Box test in float: slab distances (plane - origin) * (1 / direction).
   float inv[3];
   for (int k = 0; k < 3; ++k) {
     double dk = d[k];
@@ -469,6 +549,15 @@ int Bvh::Traverse(const Ray& ray, double t_min, double t_max, double* best_t, do
   const F4 oy = Splat(static_cast<float>(ray.origin.y()));
   const F4 oz = Splat(static_cast<float>(ray.origin.z()));
   const F4 ix = Splat(inv[0]), iy = Splat(inv[1]), iz = Splat(inv[2]);
+  // Byte offsets in a Node4 of each axis's near and far planes: lo where the direction is
+  // positive, else hi (the same distances as min / max of both, without computing both).
+  std::size_t near_at[3], far_at[3];
+  for (int k = 0; k < 3; ++k) {
+    const std::size_t lo_at = offsetof(Node4, lo_x) + 16 * k;
+    const std::size_t hi_at = offsetof(Node4, hi_x) + 16 * k;
+    near_at[k] = inv[k] >= 0.0f ? lo_at : hi_at;
+    far_at[k] = inv[k] >= 0.0f ? hi_at : lo_at;
+  }
   // Conservative float interval: slightly wider than [t_min, best].
   constexpr float kGrow = 1.0f + 4.0f * std::numeric_limits<float>::epsilon();
   float tmin_f = static_cast<float>(t_min);
@@ -481,119 +570,129 @@ int Bvh::Traverse(const Ray& ray, double t_min, double t_max, double* best_t, do
                : static_cast<float>(t) * kGrow;
   };
 
-  // Float pre-test: the watertight test's edge functions u, v, w in float, with the same axis
-  // permutation and shear. With e = 2^-24, L = max |vertex coordinate| + max |origin
-  // coordinate|: each float relative coordinate is within 2.01 e L of the exact one (rounding
-  // of vertex, origin, difference), each sheared one within D = 8.1 e L (plus the shear's own
-  // rounding, |sx|, |sy| <= 1), so with P = the largest |sheared coordinate| of the triangle
-  // each float edge function is within 4 P D + 2 D^2 + 5 e P^2 of the exact one. The double
-  // test's own error is ~2^-29 of that. A lane is rejected only when one edge function is below
-  // -E and another above +E with E twice that bound: the double test then surely sees opposite
-  // signs and rejects too, so results are exactly those of the double test alone. Beyond
-  // L = 1e15 (float overflow of P^2) the pre-test is off.
-  const double max_abs_origin = ray.origin.cwiseAbs().maxCoeff();
-  const double big_l = max_abs_coordinate_ + max_abs_origin;
-  const bool pretest = big_l <= 1e15;
-  constexpr double kE = 1.0 / 16777216.0;  // 2^-24
-  const float dd = static_cast<float>(10.0 * kE * big_l + 1e-37);
-  const F4 e_lin = Splat(pretest ? 8.0f * dd : std::numeric_limits<float>::infinity());
-  const F4 e_quad = Splat(static_cast<float>(10.0 * kE));
-  const F4 e_const = Splat(4.0f * dd * dd + 1e-37f);
+  // Triangle test: the watertight test (Woop, Benthin, Wald 2013) in double. A leaf's vertices
+  // are translated, permuted and sheared once (two at a time), then each triangle's edge
+  // functions are formed from them with exactly the operations of the scalar test.
   const int kx = wray.kx, ky = wray.ky, kz = wray.kz;
-  const F4 ro_x = Splat(static_cast<float>(ray.origin[kx]));
-  const F4 ro_y = Splat(static_cast<float>(ray.origin[ky]));
-  const F4 ro_z = Splat(static_cast<float>(ray.origin[kz]));
-  const F4 sx4 = Splat(static_cast<float>(wray.sx));
-  const F4 sy4 = Splat(static_cast<float>(wray.sy));
-  static constexpr I4 kLane = {0, 1, 2, 3};
+  const D2 o_x = Splat2(ray.origin[kx]), o_y = Splat2(ray.origin[ky]);
+  const D2 o_z = Splat2(ray.origin[kz]);
+  const D2 sx2 = Splat2(wray.sx), sy2 = Splat2(wray.sy);
+  alignas(16) double sxa[kMaxLeafVertices], sya[kMaxLeafVertices], dza[kMaxLeafVertices];
 
   double best = t_max;
   float best_f = to_tmax_f(best);
-  int best_i = -1;
+  F4 best4 = Splat(best_f);
+  std::int32_t best_triangle = -1;
 
+  // A node or leaf to visit: leaf -> at = its record, count = its triangles; inner -> at = its
+  // Node4, count <= 0. t: entry distance along the ray (float, never above the exact one).
   struct Entry {
-    std::int32_t child;
+    std::int32_t at;
     std::int32_t count;
     float t;
   };
   Entry stack[kStackSize];
   int sp = 0;
-  Entry cur{0, 0, 0.0f};  // the root
+  Entry cur{kRoot, 0, 0.0f};
   while (true) {
     if (cur.count > 0) {
-      const int last = cur.child + (cur.count - 1) / 4;
-      for (int p = cur.child; p <= last; ++p) {
-        const TrianglePack4& pack = packs_[p];
-        // Sheared float vertex coordinates relative to the ray, 4 triangles at a time.
-        F4 sxv[3], syv[3];
-        for (int j = 0; j < 3; ++j) {
-          const F4 az = Load(pack.v[j][kz]) - ro_z;
-          sxv[j] = (Load(pack.v[j][kx]) - ro_x) - sx4 * az;
-          syv[j] = (Load(pack.v[j][ky]) - ro_y) - sy4 * az;
-        }
-        const F4 u = sxv[2] * syv[1] - syv[2] * sxv[1];
-        const F4 v = sxv[0] * syv[2] - syv[0] * sxv[2];
-        const F4 w = sxv[1] * syv[0] - syv[1] * sxv[0];
-        const F4 mag = Max(Max(Max(Abs(sxv[0]), Abs(syv[0])), Max(Abs(sxv[1]), Abs(syv[1]))),
-                           Max(Abs(sxv[2]), Abs(syv[2])));
-        const F4 err = mag * (e_lin + e_quad * mag) + e_const;
-        const I4 miss = (Min(Min(u, v), w) < -err) & (Max(Max(u, v), w) > err);
-        const I4 valid = kLane < (cur.count - 4 * (p - cur.child));
-        unsigned candidates = MoveMask(valid & ~miss);
-        while (candidates != 0) {
-          const int lane = __builtin_ctz(candidates);
-          candidates &= candidates - 1;
-          const int i = 4 * p + lane;
-          double t, b1, b2;
-          if (!wray.Intersect(vertices_[pack.vertex[0][lane]].position,
-                              vertices_[pack.vertex[1][lane]].position,
-                              vertices_[pack.vertex[2][lane]].position, t_min, best, &t, &b1, &b2))
-            continue;
-          if constexpr (kAnyHit) {
-            return i;
-          } else {
-            if (best_i >= 0 && t == best && triangle_[i] > triangle_[best_i]) continue;
-            best = t;
-            best_f = to_tmax_f(best);
-            best_i = i;
-            *best_t = t;
-            *best_b1 = b1;
-            *best_b2 = b2;
-          }
+      const unsigned char* leaf = base + 8 * static_cast<std::size_t>(cur.at);
+      const int nt = cur.count;
+      const int m = leaf[0] + (leaf[0] & 1);
+      if constexpr (!kAnyHit) {
+        // Its normals, in case it holds the final hit (they are not part of the block).
+        const unsigned char* nrm = LeafNormals(leaf);
+        for (int byte = 0; byte < 24 * leaf[0]; byte += 64) __builtin_prefetch(nrm + byte);
+      }
+      const unsigned char* px = leaf + 8 + 8 * m * kx;
+      const unsigned char* py = leaf + 8 + 8 * m * ky;
+      const unsigned char* pz = leaf + 8 + 8 * m * kz;
+      for (int i = 0; i < m; i += 2) {
+        const D2 az = Load2(pz + 8 * i) - o_z;
+        Store2(&sxa[i], (Load2(px + 8 * i) - o_x) - sx2 * az);
+        Store2(&sya[i], (Load2(py + 8 * i) - o_y) - sy2 * az);
+        Store2(&dza[i], az);
+      }
+      const unsigned char* tri = leaf + 8 + 24 * m;
+      const unsigned char* corner = tri + 4 * nt;
+      for (int j = 0; j < nt; ++j) {
+        const int a = corner[3 * j], b = corner[3 * j + 1], c = corner[3 * j + 2];
+        const double u = sxa[c] * sya[b] - sya[c] * sxa[b];
+        const double v = sxa[a] * sya[c] - sya[a] * sxa[c];
+        const double w = sxa[b] * sya[a] - sya[b] * sxa[a];
+        if (((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0))) continue;
+        const double det = u + v + w;
+        if (det == 0.0) continue;
+        const double az = wray.sz * dza[a], bz = wray.sz * dza[b], cz = wray.sz * dza[c];
+        const double t = (u * az + v * bz + w * cz) / det;
+        if (!(t >= t_min && t <= best)) continue;
+        if constexpr (kAnyHit) {
+          return HitSlot{cur.at, j};
+        } else {
+          std::int32_t triangle;
+          std::memcpy(&triangle, tri + 4 * j, sizeof(triangle));
+          if (best_triangle >= 0 && t == best && triangle > best_triangle) continue;
+          best = t;
+          best_f = to_tmax_f(best);
+          best4 = Splat(best_f);
+          best_triangle = triangle;
+          best_slot = HitSlot{cur.at, j};
+          *best_t = t;
+          *best_b1 = v / det;
+          *best_b2 = w / det;
         }
       }
     } else {
-      const Node4& n = nodes_[cur.child];
-      const F4 t0x = (Load(n.lo_x) - ox) * ix, t1x = (Load(n.hi_x) - ox) * ix;
-      const F4 t0y = (Load(n.lo_y) - oy) * iy, t1y = (Load(n.hi_y) - oy) * iy;
-      const F4 t0z = (Load(n.lo_z) - oz) * iz, t1z = (Load(n.hi_z) - oz) * iz;
-      const F4 tnear = Max(Max(Min(t0x, t1x), Min(t0y, t1y)), Max(Min(t0z, t1z), tmin4));
-      const F4 tfar =
-          Min(Min(Max(t0x, t1x), Max(t0y, t1y)), Min(Max(t0z, t1z), Splat(best_f))) * grow4;
-      I4 child;
-      std::memcpy(&child, n.child, sizeof(child));
-      unsigned hit = MoveMask((tnear <= tfar) & (child >= 0));  // empty slots have child -1
+      const unsigned char* node = base + 8 * static_cast<std::size_t>(cur.at);
+      const F4 t0x = (LoadBytes(node + near_at[0]) - ox) * ix;
+      const F4 t1x = (LoadBytes(node + far_at[0]) - ox) * ix;
+      const F4 t0y = (LoadBytes(node + near_at[1]) - oy) * iy;
+      const F4 t1y = (LoadBytes(node + far_at[1]) - oy) * iy;
+      const F4 t0z = (LoadBytes(node + near_at[2]) - oz) * iz;
+      const F4 t1z = (LoadBytes(node + far_at[2]) - oz) * iz;
+      const F4 tnear = Max(Max(t0x, t0y), Max(t0z, tmin4));
+      const F4 tfar = Min(Min(t1x, t1y), Min(t1z, best4)) * grow4;
+      unsigned hit = MoveMask(tnear <= tfar);
       if (hit != 0) {
-        Entry found[4];
+        const Node4& n = *reinterpret_cast<const Node4*>(node);
+        // Entry for child k. An inner child's block (its node and leaves) is fetched whole
+        // right away; a leaf child is part of this node's block, fetched already.
+        auto enter = [&](int k) -> Entry {
+          const unsigned char* q = base + 8 * static_cast<std::size_t>(n.child[k]);
+          for (int line = 0; line < -n.count[k]; line += 4) {  // (up to 3 lines past its end)
+            __builtin_prefetch(q + 64 * line);
+            __builtin_prefetch(q + 64 * line + 64);
+            __builtin_prefetch(q + 64 * line + 128);
+            __builtin_prefetch(q + 64 * line + 192);
+          }
+          return {n.child[k], n.count[k], tnear[k]};
+        };
+        if ((hit & (hit - 1)) == 0) {
+          cur = enter(__builtin_ctz(hit));  // one child entered: the common case
+          continue;
+        }
+        Entry found[4] = {};
         int nf = 0;
         do {
-          const int k = __builtin_ctz(hit);
+          found[nf++] = enter(__builtin_ctz(hit));
           hit &= hit - 1;
-          found[nf++] = {n.child[k], n.count[k], tnear[k]};
         } while (hit != 0);
         // Nearest first: sort by entry distance (descending), push all but the nearest.
         for (int a = 1; a < nf; ++a) {
           for (int b = a; b > 0 && found[b].t > found[b - 1].t; --b)
             std::swap(found[b], found[b - 1]);
         }
-        for (int k = 0; k + 1 < nf; ++k) stack[sp++] = found[k];
+        stack[sp] = found[0];  // entries past nf - 2 are scratch, overwritten later
+        stack[sp + 1] = found[1];
+        stack[sp + 2] = found[2];
+        sp += nf - 1;
         cur = found[nf - 1];
         continue;
       }
     }
     // Pop the next node still in front of the closest hit so far.
     do {
-      if (sp == 0) return best_i;
+      if (sp == 0) return best_slot;
       --sp;
     } while (stack[sp].t > best_f);
     cur = stack[sp];
@@ -602,22 +701,29 @@ int Bvh::Traverse(const Ray& ray, double t_min, double t_max, double* best_t, do
 
 std::optional<RayHit> Bvh::Intersect(const Ray& ray, double t_min, double t_max) const {
   double t = 0.0, b1 = 0.0, b2 = 0.0;
-  const int i = Traverse<false>(ray, t_min, t_max, &t, &b1, &b2);
-  if (i < 0) return std::nullopt;
-  const TrianglePack4& pack = packs_[i / 4];
-  const VertexRecord& r0 = vertices_[pack.vertex[0][i % 4]];
-  const VertexRecord& r1 = vertices_[pack.vertex[1][i % 4]];
-  const VertexRecord& r2 = vertices_[pack.vertex[2][i % 4]];
+  const HitSlot slot = Traverse<false>(ray, t_min, t_max, &t, &b1, &b2);
+  if (slot.leaf < 0) return std::nullopt;
+  const unsigned char* leaf = lines_.data()->bytes + 8 * static_cast<std::size_t>(slot.leaf);
+  const int m = leaf[0] + (leaf[0] & 1);
+  const int nt = leaf[1];
+  const unsigned char* tri = leaf + 8 + 24 * m;
+  const unsigned char* corner = tri + 4 * nt + 3 * slot.index;
+  const unsigned char* nrm = LeafNormals(leaf);
+  Eigen::Vector3d p[3], vn[3];
+  for (int j = 0; j < 3; ++j) {
+    for (int a = 0; a < 3; ++a) std::memcpy(&p[j][a], leaf + 8 + 8 * (a * m + corner[j]), 8);
+    std::memcpy(vn[j].data(), nrm + 24 * corner[j], 24);
+  }
   RayHit hit;
   hit.t = t;
-  hit.triangle = triangle_[i];
+  std::memcpy(&hit.triangle, tri + 4 * slot.index, sizeof(std::int32_t));
   hit.b1 = b1;
   hit.b2 = b2;
   hit.point = ray.origin + t * ray.direction;
-  const Eigen::Vector3d gn = (r1.position - r0.position).cross(r2.position - r0.position);
+  const Eigen::Vector3d gn = (p[1] - p[0]).cross(p[2] - p[0]);
   const double gl = gn.norm();
   hit.geometric_normal = gl > 0.0 ? Eigen::Vector3d(gn / gl) : Eigen::Vector3d::UnitZ();
-  const Eigen::Vector3d sn = (1.0 - b1 - b2) * r0.normal + b1 * r1.normal + b2 * r2.normal;
+  const Eigen::Vector3d sn = (1.0 - b1 - b2) * vn[0] + b1 * vn[1] + b2 * vn[2];
   const double sl = sn.norm();
   hit.normal = sl > 0.0 ? Eigen::Vector3d(sn / sl) : hit.geometric_normal;
   hit.front_face = ray.direction.dot(hit.geometric_normal) < 0.0;
@@ -626,7 +732,7 @@ std::optional<RayHit> Bvh::Intersect(const Ray& ray, double t_min, double t_max)
 
 bool Bvh::Occluded(const Ray& ray, double t_min, double t_max) const {
   double t, b1, b2;
-  return Traverse<true>(ray, t_min, t_max, &t, &b1, &b2) >= 0;
+  return Traverse<true>(ray, t_min, t_max, &t, &b1, &b2).leaf >= 0;
 }
 
 }  // namespace gs360

@@ -3,13 +3,13 @@
 //
 // Build: binned SAH (surface area heuristic) binary tree collapsed into 4-wide float nodes (boxes
 // rounded outward and padded so they always contain the double-precision triangles), traversed
-// front to back with 4-lane vector box tests. Leaves hold their triangles in packs of four float
-// copies for a conservative 4-lane float pre-test (it rejects only what the exact test surely
-// rejects); the survivors go through the watertight ray/triangle test (Woop, Benthin, Wald 2013)
-// in double precision, so a ray never slips between two triangles sharing an edge and t is exact
-// to double rounding (~1e-15 relative). Results are exactly those of the double test over all
-// triangles. Large arrays use 2 MiB transparent huge pages on Linux (madvise): incoherent rays
-// are otherwise dominated by TLB misses.
+// front to back with 4-lane vector box tests. Each leaf stores its distinct vertices as exact
+// double copies; the watertight ray/triangle test (Woop, Benthin, Wald 2013) runs on them in
+// double precision, so a ray never slips between two triangles sharing an edge and t is exact to
+// double rounding (~1e-15 relative). Results are exactly those of the double test over all
+// triangles. Memory layout for incoherent rays: a node and its leaves share one contiguous block
+// that is prefetched as a whole when the parent enters the node, and large arrays use 2 MiB
+// transparent huge pages on Linux (madvise) against TLB misses.
 //
 // Determinism: Intersect returns the hit with the smallest t; among hits at exactly the same t
 // the smallest triangle index wins, independent of traversal order. Results do not depend on the
@@ -89,31 +89,39 @@ class Bvh {
   const BvhStats& stats() const { return stats_; }
 
  private:
-  // 4-wide node (128 bytes, two cache lines): the boxes of up to four children in
-  // structure-of-arrays float form, tested together with 4-lane vector instructions. Built by
-  // collapsing a binary SAH tree.
+  // Layout: one array of 64-byte lines (lines_). It starts with a never-hit leaf that empty node
+  // slots point to, then holds one block per 4-wide node, depth first: the Node4, the records of
+  // its leaf children, then those leaves' vertex normals. Entering a node prefetches its block up
+  // to the normals, so the node's leaves arrive with the node: an incoherent ray waits about one
+  // memory latency per tree level below the cached top, not two. Offsets are in 8-byte words
+  // (int32: at most 16 GiB of tree).
+  //
+  // 4-wide node (128 bytes, two lines): the boxes of up to four children in structure-of-arrays
+  // float form, tested with 4-lane vector instructions (near and far planes picked per ray by
+  // the direction's signs). Empty slots have an inverted infinite box (never entered) and point
+  // to the never-hit leaf.
   struct alignas(64) Node4 {
     float lo_x[4], lo_y[4], lo_z[4];
     float hi_x[4], hi_y[4], hi_z[4];
-    // Per child: inner -> child[k] = Node4 index, count[k] = 0; leaf -> child[k] = first
-    // TrianglePack4 of the leaf, count[k] = triangles (ceil(count / 4) consecutive packs, unused
-    // lanes of the last one padded); empty slot -> child[k] = -1.
+    // Per child: word offset into lines_ of its Node4 (inner) or leaf record (leaf).
     std::int32_t child[4];
+    // Per child: leaf -> its triangles (1..64); inner -> minus the lines of its block to
+    // prefetch (at most 32; the normals excluded).
     std::int32_t count[4];
   };
-  // Four triangles of one leaf (192 bytes, three cache lines): float vertices (each coordinate
-  // rounded to nearest from the double mesh vertex), [vertex][axis][lane], for a conservative
-  // 4-lane float pre-test that rejects the triangles the ray clearly misses, and the triangles'
-  // indices into vertices_ for the exact double watertight test that confirms the rest.
-  struct alignas(64) TrianglePack4 {
-    float v[3][3][4];
-    std::int32_t vertex[3][4];
+  // A leaf record (8-byte aligned, in its parent's block), with nt triangles and nv distinct
+  // vertices, m = nv rounded up to even: a header word (byte 0: nv, byte 1: nt, bytes 4..7:
+  // int32 offset in words from the record to its normals); the vertices as exact doubles in
+  // structure-of-arrays form x[m], y[m], z[m] (an odd count repeats the last one); int32
+  // triangle[nt] (mesh indices); uint8 corner[nt][3] (each triangle's vertices as indices into
+  // the leaf's). Its normals, double[nv][3], follow the block's leaves (read for a final hit only).
+  struct alignas(64) Line {
+    unsigned char bytes[64];
   };
-  // A mesh vertex and its normal, stored in the order the leaves first use them (a leaf's
-  // vertices share cache lines).
-  struct VertexRecord {
-    Eigen::Vector3d position;
-    Eigen::Vector3d normal;
+  // The closest (or any) hit found by Traverse: the leaf record and the triangle within it.
+  struct HitSlot {
+    std::int32_t leaf = -1;  // word offset of the leaf record, -1: no hit
+    int index = 0;           // triangle within the leaf
   };
 
   // Allocator for the large arrays: on Linux, blocks of 1 MiB and more are 2 MiB aligned and
@@ -137,17 +145,13 @@ class Bvh {
   template <typename T>
   using LargeVector = std::vector<T, LargeAllocator<T>>;
 
-  // Returns the slot of the hit (closest, or any for kAnyHit), or -1.
+  // The hit (closest, or any for kAnyHit) with t in [t_min, t_max]; writes t and barycentrics.
   template <bool kAnyHit>
-  int Traverse(const Ray& ray, double t_min, double t_max, double* best_t, double* best_b1,
-               double* best_b2) const;
+  HitSlot Traverse(const Ray& ray, double t_min, double t_max, double* best_t, double* best_b1,
+                   double* best_b2) const;
 
   TriangleMesh mesh_;
-  LargeVector<Node4> nodes_;          // root first
-  LargeVector<TrianglePack4> packs_;  // leaves' triangles, depth-first leaf order
-  LargeVector<VertexRecord> vertices_;
-  LargeVector<std::int32_t> triangle_;  // slot (4 * pack + lane) -> triangle index, -1: padding
-  double max_abs_coordinate_ = 0.0;     // largest |vertex coordinate|, for the pre-test's bound
+  LargeVector<Line> lines_;  // see Layout above; empty for a mesh without hittable triangles
   BvhStats stats_;
 };
 
