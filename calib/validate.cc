@@ -14,8 +14,6 @@ namespace {
 using Json = nlohmann::json;
 constexpr double kRadToDeg = 180.0 / 3.14159265358979323846;
 const char* const kTruths[] = {"rigid", "physical"};
-// The third "method" integrates the rigid render's own slopes with the default integrator: the
-// error the integration alone leaves, with perfect slopes (a diagnostic of the MLP's share).
 // The three integrators on the MLP's slopes, then the diagnostic: the default integrator on the
 // rigid render's exact slopes (separates integration error from slope error).
 const char* const kMethods[] = {"heightfield", "discontinuity", "poisson", "render_slopes"};

@@ -123,12 +123,19 @@ TEST_CASE(
   CHECK(std::filesystem::exists(first.model_path));
   CHECK(std::filesystem::exists(first.onnx_path));
   CHECK(std::filesystem::exists(first.report_path));
-  CHECK(first.validation.at("results")
-            .at("rigid")
-            .at("discontinuity")
-            .at("all")
-            .at("pixels")
-            .get<int>() > 0);
+  // Every integrator is reported, the height field as the default.
+  CHECK(first.validation.at("default_method") == "heightfield");
+  for (const char* method : {"heightfield", "discontinuity", "poisson", "render_slopes"}) {
+    INFO(method);
+    CHECK(first.validation.at("results").at("rigid").at(method).at("all").at("pixels").get<int>() >
+          0);
+    CHECK(first.validation.at("results")
+              .at("rigid")
+              .at(method)
+              .at("all")
+              .at("peak_bias_mm")
+              .is_number());
+  }
   // The pose moved from the nominal toward the (hidden) truth: the sim's camera is 0.3 mm / 1 deg
   // off.
   CHECK(TranslationDifferenceMm(first.cam_from_sensor, s.inputs.nominal_cam_from_sensor) > 0.05);
