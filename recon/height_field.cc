@@ -13,6 +13,9 @@ namespace gs360 {
 namespace {
 
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+// A projected grid cell wider than this (pixels) is a fold across the occluding contour seen
+// edge-on, not a surface patch: it is not rasterised.
+constexpr double kMaxTrianglePx = 32.0;
 
 [[noreturn]] void Bad(const char* field, double value, const char* want) {
   throw std::invalid_argument(std::string("HeightFieldOptions.") + field + " must be " + want +
@@ -102,8 +105,9 @@ void Rasterize(const Grid& g, const FisheyeCamera& camera, const cv::Rect& roi,
                  hi_x = std::max({pa.x(), pb.x(), pc.x()});
     const double lo_y = std::min({pa.y(), pb.y(), pc.y()}),
                  hi_y = std::max({pa.y(), pb.y(), pc.y()});
-    // A triangle this large is a fold across the occluding contour seen edge-on: skip it.
-    if (hi_x - lo_x > 32.0 || hi_y - lo_y > 32.0) return;
+    if (hi_x - lo_x > kMaxTrianglePx || hi_y - lo_y > kMaxTrianglePx) return;
+    // Wholly outside the region (also keeps the casts below in range).
+    if (hi_x < 0.0 || hi_y < 0.0 || lo_x > g.w - 1.0 || lo_y > g.h - 1.0) return;
     const int x0 = std::max(0, static_cast<int>(std::ceil(lo_x - 1e-9)));
     const int x1 = std::min(g.w - 1, static_cast<int>(std::floor(hi_x + 1e-9)));
     const int y0 = std::max(0, static_cast<int>(std::ceil(lo_y - 1e-9)));
