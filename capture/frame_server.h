@@ -54,6 +54,8 @@ class FrameServer {
   FrameServer& operator=(const FrameServer&) = delete;
 
   const std::filesystem::path& path() const { return path_; }
+  // Replies written completely (counted after the last byte is written, so a client may hold a
+  // frame a moment before it is counted).
   std::uint64_t FramesServed() const { return served_.load(); }
 
  private:

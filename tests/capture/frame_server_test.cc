@@ -3,6 +3,7 @@
 #include <unistd.h>
 
 #include <atomic>
+#include <chrono>
 #include <filesystem>
 #include <stdexcept>
 #include <thread>
@@ -55,6 +56,12 @@ TEST_CASE("socket frame source receives the server's frames intact", "[capture][
     CHECK(frame->timestamp == want.timestamp);
     CHECK(frame->exposure == want.exposure);
     CHECK(cv::norm(frame->image, want.image, cv::NORM_INF) == 0);
+  }
+  // The server counts a reply once its last byte is written, which can be just after the client
+  // has read it: wait for the count (bounded), then it must be exactly the five requested.
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(2);
+  while (server.FramesServed() < 5 && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
   }
   CHECK(server.FramesServed() == 5);
 }
