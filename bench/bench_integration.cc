@@ -136,33 +136,11 @@ int main(int argc, char** argv) {
       const double d_s = Seconds(t0);
       const testing::PressErrors ep = testing::MeasurePress(map, s, rp.rho, &wall);
       const testing::PressErrors ed = testing::MeasurePress(map, s, rd.rho, &wall);
-      cv::Mat slopes(s.roi.size(), CV_32FC2, cv::Scalar::all(0));
-      for (int y = 0; y < s.roi.height; ++y) {
-        for (int x = 0; x < s.roi.width; ++x) {
-          const cv::Vec3d nn = s.normals.at<cv::Vec3d>(y, x);
-          if (!std::isfinite(nn[0])) continue;
-          const Eigen::Vector2d gs =
-              map.SlopesFromNormal(s.roi.x + x, s.roi.y + y, Eigen::Vector3d(nn[0], nn[1], nn[2]));
-          slopes.at<cv::Vec2f>(y, x) =
-              cv::Vec2f(static_cast<float>(gs.x()), static_cast<float>(gs.y()));
-        }
-      }
       t0 = std::chrono::steady_clock::now();
-      cv::Mat h0;
-      if (hf_init) {
-        const IntegrationResult rp0 = IntegrateLogDepth(map, g, poisson);
-        h0 = cv::Mat(s.roi.size(), CV_64F, cv::Scalar::all(0.0));
-        for (int y = 0; y < s.roi.height; ++y) {
-          for (int x = 0; x < s.roi.width; ++x) {
-            const int u = s.roi.x + x, v = s.roi.y + y;
-            const double rr = rp0.rho.at<double>(y, x);
-            if (!map.visible(u, v) || !std::isfinite(rr)) continue;
-            h0.at<double>(y, x) =
-                (map.rho0(u, v) - rr) * std::abs(map.ray(u, v).dot(map.normal0(u, v)));
-          }
-        }
-      }
-      const HeightFieldResult rh = IntegrateHeightField(map, camera, s.roi, slopes, hf, h0);
+      const cv::Mat h0 =
+          hf_init ? IndentationFromRho(map, s.roi, IntegrateLogDepth(map, g, poisson).rho)
+                  : cv::Mat();
+      const HeightFieldResult rh = IntegrateHeightField(map, camera, s.roi, s.normals, hf, h0);
       const double h_s = Seconds(t0);
       const testing::PressErrors eh = testing::MeasurePress(map, s, rh.rho, &wall);
       const int band = ep.view_angle_deg < 30 ? 0 : ep.view_angle_deg <= 50 ? 1 : 2;

@@ -155,7 +155,7 @@ void HeightFieldOptions::Check() const {
 }
 
 HeightFieldResult IntegrateHeightField(const SurfaceMap& map, const FisheyeCamera& camera,
-                                       const cv::Rect& roi, const cv::Mat& slopes,
+                                       const cv::Rect& roi, const cv::Mat& normals,
                                        const HeightFieldOptions& options,
                                        const cv::Mat& initial_height) {
   options.Check();
@@ -163,23 +163,24 @@ HeightFieldResult IntegrateHeightField(const SurfaceMap& map, const FisheyeCamer
       roi.x + roi.width > map.width() || roi.y + roi.height > map.height()) {
     throw std::invalid_argument("IntegrateHeightField: roi must be at least 3 x 3 inside the map");
   }
-  if (slopes.type() != CV_32FC2 || slopes.size() != roi.size()) {
-    throw std::invalid_argument("IntegrateHeightField: slopes must be CV_32FC2 of the roi's size");
+  if (normals.type() != CV_64FC3 || normals.size() != roi.size()) {
+    throw std::invalid_argument("IntegrateHeightField: normals must be CV_64FC3 of the roi's size");
   }
   const Grid g = BuildGrid(map, roi);
   const int w = g.w, hgt = g.h;
   const std::size_t n = g.x0.size();
 
-  // Each pixel's observed normal, in the camera frame (from its own tangent frame).
+  // Each pixel's observed normal (camera frame), where it has one.
   std::vector<Eigen::Vector3d> normal(n, Eigen::Vector3d::Zero());
   std::vector<std::uint8_t> has_normal(n, 0);
   for (int y = 0; y < hgt; ++y) {
     for (int x = 0; x < w; ++x) {
-      const int u = roi.x + x, v = roi.y + y;
-      if (!map.visible(u, v)) continue;
-      const cv::Vec2f s = slopes.at<cv::Vec2f>(y, x);
-      if (!std::isfinite(s[0]) || !std::isfinite(s[1])) continue;
-      normal[g.Index(x, y)] = map.NormalFromSlopes(u, v, s[0], s[1]);
+      const cv::Vec3d nn = normals.at<cv::Vec3d>(y, x);
+      if (!map.visible(roi.x + x, roi.y + y) || !std::isfinite(nn[0]) || !std::isfinite(nn[1]) ||
+          !std::isfinite(nn[2])) {
+        continue;
+      }
+      normal[g.Index(x, y)] = Eigen::Vector3d(nn[0], nn[1], nn[2]);
       has_normal[g.Index(x, y)] = 1;
     }
   }
@@ -279,12 +280,10 @@ HeightFieldResult IntegrateHeightField(const SurfaceMap& map, const FisheyeCamer
   Rasterize(g, camera, roi, h, &raster);
   out.height = cv::Mat(roi.size(), CV_64F, cv::Scalar::all(0.0));
   out.rho = cv::Mat(roi.size(), CV_64F, cv::Scalar::all(kNaN));
-  out.observed = cv::Mat(roi.size(), CV_8U, cv::Scalar::all(0));
   for (int y = 0; y < hgt; ++y) {
     for (int x = 0; x < w; ++x) {
       const int i = g.Index(x, y);
       out.height.at<double>(y, x) = h[i];
-      if (wsum[i] > 0.0) out.observed.at<std::uint8_t>(y, x) = 255;
       if (!map.visible(roi.x + x, roi.y + y)) continue;
       // Nothing rasterised here (a roi edge or a hole next to an invisible pixel): the pixel's
       // own grid point, moved along its normal, is the best guess.

@@ -14,7 +14,7 @@
 //   1. projects the current surface X into the image and rasterises it with a depth buffer:
 //      every pixel gets the grid position s'(p) of the point it sees and its distance rho(p);
 //      grid points no pixel sees (behind the bump) get no data;
-//   2. turns each pixel's slopes (its normal n(p), from the MLP, in p's own tangent frame) into
+//   2. turns each pixel's observed normal n(p) (from the MLP's slopes) into
 //      targets for dh/du, dh/dv at the grid point nearest s'(p) (averaged where several land);
 //   3. solves the weighted least squares  sum_edges w (h_b - h_a - t)^2  with h = 0 on the
 //      region's border; edges without data get a small weight (a membrane: the hidden far side
@@ -46,18 +46,18 @@ struct HeightFieldOptions {
 };
 
 struct HeightFieldResult {
-  cv::Mat height;    // CV_64F roi-sized: h along -n0 (mm, + into the gel), 0 on the border
-  cv::Mat rho;       // CV_64F roi-sized: first hit along each pixel's ray (mm); NaN if invisible
-  cv::Mat observed;  // CV_8U roi-sized: 255 where a pixel's observation landed on the grid
+  cv::Mat height;  // CV_64F roi-sized: h along -n0 (mm, + into the gel), 0 on the border
+  cv::Mat rho;     // CV_64F roi-sized: first hit along each pixel's ray (mm); NaN if invisible
   int iterations = 0;
 };
 
-// slopes: CV_32FC2 roi-sized tangent-frame slopes (gx, gy) per pixel, in the pixel's own frame
-// (recon/surface_map.h). `camera` is the map's camera. initial_height: empty, or CV_64F
-// roi-sized (mm; non-finite values count as 0). Throws std::invalid_argument for a roi
-// smaller than 3 x 3, outside the map, or slopes of the wrong type/size.
+// normals: CV_64FC3 roi-sized, the observed unit normal per pixel in the camera frame (NaN: no
+// data), as recon/integration.h ComputeLogDepthGradients takes them. `camera` is the map's
+// camera. initial_height: empty, or CV_64F roi-sized (mm; non-finite values count as 0). Throws
+// std::invalid_argument for a roi smaller than 3 x 3, outside the map, or normals of the wrong
+// type/size.
 HeightFieldResult IntegrateHeightField(const SurfaceMap& map, const FisheyeCamera& camera,
-                                       const cv::Rect& roi, const cv::Mat& slopes,
+                                       const cv::Rect& roi, const cv::Mat& normals,
                                        const HeightFieldOptions& options = {},
                                        const cv::Mat& initial_height = cv::Mat());
 

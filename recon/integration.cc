@@ -526,4 +526,20 @@ IntegrationResult IntegrateLogDepth(const SurfaceMap& map, const LogDepthGradien
   return result;
 }
 
+cv::Mat IndentationFromRho(const SurfaceMap& map, const cv::Rect& roi, const cv::Mat& rho) {
+  if (rho.type() != CV_64F || rho.size() != roi.size()) {
+    throw std::invalid_argument("IndentationFromRho: rho must be CV_64F of the roi's size");
+  }
+  cv::Mat out(roi.size(), CV_64F, cv::Scalar::all(kNaN));
+  for (int y = 0; y < roi.height; ++y) {
+    for (int x = 0; x < roi.width; ++x) {
+      const int u = roi.x + x, v = roi.y + y;
+      const double r = rho.at<double>(y, x);
+      if (!map.visible(u, v) || !std::isfinite(r)) continue;
+      out.at<double>(y, x) = (map.rho0(u, v) - r) * std::abs(map.ray(u, v).dot(map.normal0(u, v)));
+    }
+  }
+  return out;
+}
+
 }  // namespace gs360

@@ -87,6 +87,11 @@ struct IntegrationResult {
 IntegrationResult IntegrateLogDepth(const SurfaceMap& map, const LogDepthGradients& g,
                                     const IntegrationOptions& options = {});
 
+// Indentation along the undeformed normal, (rho0 - rho) |d . n0| (mm, + into the gel), for rho
+// over roi (CV_64F roi-sized); NaN where the map has no gel or rho is not finite. Throws
+// std::invalid_argument for a rho of the wrong type or size.
+cv::Mat IndentationFromRho(const SurfaceMap& map, const cv::Rect& roi, const cv::Mat& rho);
+
 // The DST-I Poisson solver itself: solves lap(psi) = f on the interior of a w x h grid with
 // psi = 0 on the outer boundary ring (first/last row and column are boundary, value 0). f is
 // CV_64F h x w; the result has the same size with a zero border. Exposed for tests and reuse.

@@ -268,18 +268,9 @@ RegionReconstruction Reconstructor::IntegrateSlopes(const cv::Mat& slopes,
     // of the right size elsewhere, so the passes only have to correct the shifts.
     IntegrationOptions poisson = integration;
     poisson.method = IntegrationMethod::kPoisson;
-    const cv::Mat rho_p = IntegrateLogDepth(*map_, grads, poisson).rho;
-    cv::Mat h0(roi.size(), CV_64F, cv::Scalar::all(0.0));
-    for (int y = 0; y < roi.height; ++y) {
-      for (int x = 0; x < roi.width; ++x) {
-        const int u = roi.x + x, v = roi.y + y;
-        const double r = rho_p.at<double>(y, x);
-        if (!map_->visible(u, v) || !std::isfinite(r)) continue;
-        h0.at<double>(y, x) =
-            (map_->rho0(u, v) - r) * std::abs(map_->ray(u, v).dot(map_->normal0(u, v)));
-      }
-    }
-    out.rho = IntegrateHeightField(*map_, camera_, roi, slopes, integration.height_field, h0).rho;
+    const cv::Mat h0 = IndentationFromRho(*map_, roi, IntegrateLogDepth(*map_, grads, poisson).rho);
+    out.rho =
+        IntegrateHeightField(*map_, camera_, roi, out.normals, integration.height_field, h0).rho;
   } else {
     IntegrationOptions along_rays = integration;
     if (along_rays.method == IntegrationMethod::kHeightField) {
@@ -288,16 +279,11 @@ RegionReconstruction Reconstructor::IntegrateSlopes(const cv::Mat& slopes,
     out.rho = IntegrateLogDepth(*map_, grads, along_rays).rho;
   }
   out.integration_seconds = Seconds(t0);
-  out.indentation = cv::Mat(roi.size(), CV_64F, cv::Scalar::all(kNaN));
+  out.indentation = IndentationFromRho(*map_, roi, out.rho);
   for (int y = 0; y < roi.height; ++y) {
     for (int x = 0; x < roi.width; ++x) {
-      const int u = roi.x + x, v = roi.y + y;
-      const double rho = out.rho.at<double>(y, x);
-      if (!map_->visible(u, v) || !std::isfinite(rho)) continue;
-      const double cosine = std::abs(map_->ray(u, v).dot(map_->normal0(u, v)));
-      const double depth = (map_->rho0(u, v) - rho) * cosine;
-      out.indentation.at<double>(y, x) = depth;
-      out.peak_indentation_mm = std::max(out.peak_indentation_mm, depth);
+      const double depth = out.indentation.at<double>(y, x);
+      if (std::isfinite(depth)) out.peak_indentation_mm = std::max(out.peak_indentation_mm, depth);
     }
   }
   return out;

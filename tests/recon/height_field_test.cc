@@ -2,6 +2,7 @@
 
 #include <catch2/catch.hpp>
 #include <cmath>
+#include <limits>
 #include <numbers>
 
 #include "geometry/bvh.h"
@@ -53,14 +54,21 @@ const WallScene& Scene() {
 
 }  // namespace
 
-TEST_CASE("Height field: zero slopes leave the wall where it is", "[height_field]") {
+TEST_CASE("Height field: undeformed normals leave the wall where it is", "[height_field]") {
   const WallScene& w = Scene();
   // depth = r: the "ball centre" is the wall point itself.
   const auto uv = w.camera.CamToPixel(w.Ball(56.0, 20.0, 2.0, 2.0));
   REQUIRE(uv);
   const cv::Rect roi(static_cast<int>(uv->x()) - 15, static_cast<int>(uv->y()) - 15, 31, 31);
-  const cv::Mat zero(roi.size(), CV_32FC2, cv::Scalar::all(0));
-  const HeightFieldResult r = IntegrateHeightField(w.map, w.camera, roi, zero);
+  cv::Mat n0(roi.size(), CV_64FC3, cv::Scalar::all(std::numeric_limits<double>::quiet_NaN()));
+  for (int y = 0; y < roi.height; ++y) {
+    for (int x = 0; x < roi.width; ++x) {
+      if (!w.map.visible(roi.x + x, roi.y + y)) continue;
+      const Eigen::Vector3d n = w.map.normal0(roi.x + x, roi.y + y);
+      n0.at<cv::Vec3d>(y, x) = cv::Vec3d(n.x(), n.y(), n.z());
+    }
+  }
+  const HeightFieldResult r = IntegrateHeightField(w.map, w.camera, roi, n0);
   double max_h = 0.0, max_rho = 0.0;
   for (int y = 0; y < roi.height; ++y) {
     for (int x = 0; x < roi.width; ++x) {
@@ -95,7 +103,7 @@ TEST_CASE(
       poisson.method = IntegrationMethod::kPoisson;
       const IntegrationResult rp =
           IntegrateLogDepth(w.map, ComputeLogDepthGradients(w.map, s.roi, s.normals), poisson);
-      const HeightFieldResult rh = IntegrateHeightField(w.map, w.camera, s.roi, SlopesOf(w.map, s));
+      const HeightFieldResult rh = IntegrateHeightField(w.map, w.camera, s.roi, s.normals);
       const testing::PressErrors ep = testing::MeasurePress(w.map, s, rp.rho, &wall);
       const testing::PressErrors eh = testing::MeasurePress(w.map, s, rh.rho, &wall);
       WARN("view " << ep.view_angle_deg << " deg, azimuth " << az << ": point-to-surface poisson "
@@ -142,12 +150,12 @@ TEST_CASE("Height field options and inputs are checked", "[height_field]") {
   CHECK_THROWS_WITH(o.Check(), Catch::Contains("min_normal_dot"));
   const WallScene& w = Scene();
   const cv::Rect roi(300, 100, 20, 20);
-  CHECK_THROWS_AS(IntegrateHeightField(w.map, w.camera, roi, cv::Mat(20, 20, CV_32FC1)),
+  CHECK_THROWS_AS(IntegrateHeightField(w.map, w.camera, roi, cv::Mat(20, 20, CV_32FC2)),
                   std::invalid_argument);
   CHECK_THROWS_AS(
-      IntegrateHeightField(w.map, w.camera, cv::Rect(630, 100, 20, 20), cv::Mat(20, 20, CV_32FC2)),
+      IntegrateHeightField(w.map, w.camera, cv::Rect(630, 100, 20, 20), cv::Mat(20, 20, CV_64FC3)),
       std::invalid_argument);
-  CHECK_THROWS_AS(IntegrateHeightField(w.map, w.camera, roi, cv::Mat(20, 20, CV_32FC2),
+  CHECK_THROWS_AS(IntegrateHeightField(w.map, w.camera, roi, cv::Mat(20, 20, CV_64FC3),
                                        HeightFieldOptions{}, cv::Mat(3, 3, CV_64F)),
                   std::invalid_argument);
   IntegrationOptions io;
