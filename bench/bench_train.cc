@@ -15,6 +15,7 @@
 #include <ctime>
 #include <random>
 #include <string>
+#include <vector>
 
 #include "calib/train.h"
 
@@ -101,12 +102,28 @@ int main(int argc, char** argv) {
 
   const Data train = MakeData(samples, 1);
   const Data val = MakeData(std::max(1000, samples / 20), 2);
-  std::printf("bench_train: %d training samples, %d validation, net 5-32-32-32-2, batch 1024\n",
-              samples, static_cast<int>(val.x.cols()));
+  {
+    const TrainOptions defaults;
+    std::string net = "5";
+    for (int h : defaults.hidden) net += "-" + std::to_string(h);
+    std::printf(
+        "bench_train: %d training samples, %d validation, net %s-2, batch %d, Fourier "
+        "features %d x %d (the defaults)\n",
+        samples, static_cast<int>(val.x.cols()), net.c_str(), defaults.batch_size,
+        defaults.fourier.inputs, defaults.fourier.frequencies);
+  }
 
-  for (Activation act : {Activation::kTanh, Activation::kSilu, Activation::kRelu}) {
+  struct Variant {
+    Activation activation;
+    bool fourier;
+  };
+  for (const Variant variant :
+       {Variant{Activation::kTanh, true}, Variant{Activation::kTanh, false},
+        Variant{Activation::kSilu, true}, Variant{Activation::kRelu, true}}) {
+    const Activation act = variant.activation;
     for (int threads : {1, 2}) {
       TrainOptions options;
+      if (!variant.fourier) options.fourier = {};
       options.activation = act;
       options.threads = threads;
       options.max_epochs = epochs;
@@ -119,16 +136,31 @@ int main(int argc, char** argv) {
       // Wall-clock rate of the fastest epoch (training + validation pass), and the rate per
       // CPU-second over the whole call (less sensitive to other load on the machine).
       std::printf(
-          "  train %-4s threads %d: %.2f M samples/s wall (best epoch of %d: %.3f s incl. "
+          "  train %-4s %-10s threads %d: %.2f M samples/s wall (best epoch of %d: %.3f s incl. "
           "validation), %.2f M samples per CPU-s, val loss %.4g\n",
-          std::string(gs360::ToString(act)).c_str(), threads, samples / best / 1e6, epochs, best,
+          std::string(gs360::ToString(act)).c_str(), variant.fourier ? "fourier" : "no-fourier",
+          threads, samples / best / 1e6, epochs, best,
           static_cast<double>(samples) * epochs / cpu / 1e6, r.best_val_loss);
     }
   }
 
   {
-    for (Activation act : {Activation::kTanh, Activation::kSilu, Activation::kRelu}) {
-      gs360::Mlp m({5, 32, 32, 32, 2}, act, 1);
+    struct ForwardVariant {
+      Activation activation;
+      std::vector<int> sizes;
+      gs360::FourierFeatures fourier;
+      const char* name;
+    };
+    const std::vector<ForwardVariant> variants = {
+        {Activation::kTanh, {5, 64, 64, 64, 2}, {2, 4, 1.0f}, "5-64-64-64-2 fourier 2x4"},
+        {Activation::kTanh, {5, 64, 64, 64, 2}, {}, "5-64-64-64-2"},
+        {Activation::kTanh, {5, 128, 128, 128, 2}, {}, "5-128-128-128-2"},
+        {Activation::kTanh, {5, 32, 32, 32, 2}, {}, "5-32-32-32-2"},
+        {Activation::kSilu, {5, 32, 32, 32, 2}, {}, "5-32-32-32-2"},
+        {Activation::kRelu, {5, 32, 32, 32, 2}, {}, "5-32-32-32-2"}};
+    for (const ForwardVariant& v : variants) {
+      const Activation act = v.activation;
+      gs360::Mlp m(v.sizes, act, 1, v.fourier);
       const int repeats = 3;
       double best = 1e30;
       for (int rep = 0; rep < repeats; ++rep) {
@@ -137,8 +169,9 @@ int main(int argc, char** argv) {
         best = std::min(best, Seconds(t0));
         if (!y.allFinite()) std::printf("non-finite output\n");
       }
-      std::printf("  Forward %-4s (1 thread): %.2f M samples/s (%.3f s for %d)\n",
-                  std::string(gs360::ToString(act)).c_str(), samples / best / 1e6, best, samples);
+      std::printf("  Forward %-4s %-26s (1 thread): %.2f M samples/s (%.3f s for %d)\n",
+                  std::string(gs360::ToString(act)).c_str(), v.name, samples / best / 1e6, best,
+                  samples);
     }
   }
 

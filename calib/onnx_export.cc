@@ -122,7 +122,7 @@ std::vector<std::uint8_t> ExportMlpToOnnx(const Mlp& mlp, const OnnxExportOption
   }
   for (std::size_t k = 0; k < layers.size(); ++k) {
     const int rows = mlp.sizes()[k + 1];
-    const int cols = mlp.sizes()[k];
+    const int cols = k == 0 ? mlp.first_layer_input_size() : mlp.sizes()[k];
     if (layers[k].weight.rows() != rows || layers[k].weight.cols() != cols ||
         layers[k].bias.size() != rows) {
       throw std::invalid_argument("ExportMlpToOnnx: layer " + std::to_string(k) + " has weight [" +
@@ -144,9 +144,15 @@ std::vector<std::uint8_t> ExportMlpToOnnx(const Mlp& mlp, const OnnxExportOption
   const Eigen::VectorXd in_scale = mlp.input_scale().cast<double>();
   const Eigen::VectorXd out_mean = mlp.output_mean().cast<double>();
   const Eigen::VectorXd out_scale = mlp.output_scale().cast<double>();
-  if (options.fold_normalization) {
+  // With Fourier features the first layer needs the normalised position for the phases, so the
+  // input normalisation stays explicit; only the output's is folded.
+  const FourierFeatures& fourier = mlp.fourier();
+  const bool fold_input = options.fold_normalization && !fourier.Enabled();
+  if (fold_input) {
     weights.front() = weights.front() * in_scale.cwiseInverse().asDiagonal();
     biases.front() = biases.front() - weights.front() * in_mean;
+  }
+  if (options.fold_normalization) {
     weights.back() = out_scale.asDiagonal() * weights.back();
     biases.back() = out_scale.cwiseProduct(biases.back()) + out_mean;
   }
@@ -169,12 +175,42 @@ std::vector<std::uint8_t> ExportMlpToOnnx(const Mlp& mlp, const OnnxExportOption
   SetFloatTensorType(graph->add_output(), options.output_name, out);
 
   std::string current = options.input_name;
-  if (!options.fold_normalization) {
+  if (!fold_input) {
     AddInitializer(graph, "input_mean", in_mean, true);
     AddInitializer(graph, "input_scale", in_scale, true);
     AddNode(graph, "Sub", "normalize_sub", {current, "input_mean"}, "input_centered");
     AddNode(graph, "Div", "normalize_div", {"input_centered", "input_scale"}, "input_normalized");
     current = "input_normalized";
+  }
+  if (fourier.Enabled()) {
+    // phases = a F^T with one non-zero per row of F (w_j at column i), so each phase is the
+    // single float product w_j a_i that Mlp::Encode computes; then [a, sin, cos].
+    const int count = fourier.inputs * fourier.frequencies;
+    Eigen::MatrixXd f = Eigen::MatrixXd::Zero(count, in);
+    for (int i = 0; i < fourier.inputs; ++i) {
+      float w = fourier.base;
+      for (int j = 0; j < fourier.frequencies; ++j, w *= 2.0f) {
+        f(i * fourier.frequencies + j, i) = static_cast<double>(w);
+      }
+    }
+    AddInitializer(graph, "fourier.frequencies", f, false);
+    AddInitializer(graph, "fourier.zero", Eigen::VectorXd::Zero(count), true);
+    onnx::NodeProto* phase =
+        AddNode(graph, "Gemm", "fourier.Gemm", {current, "fourier.frequencies", "fourier.zero"},
+                "fourier.phase");
+    auto* trans_b = phase->add_attribute();
+    trans_b->set_name("transB");
+    trans_b->set_type(onnx::AttributeProto_AttributeType_INT);
+    trans_b->set_i(1);
+    AddNode(graph, "Sin", "fourier.Sin", {"fourier.phase"}, "fourier.sin");
+    AddNode(graph, "Cos", "fourier.Cos", {"fourier.phase"}, "fourier.cos");
+    onnx::NodeProto* concat = AddNode(graph, "Concat", "fourier.Concat",
+                                      {current, "fourier.sin", "fourier.cos"}, "fourier.features");
+    auto* axis = concat->add_attribute();
+    axis->set_name("axis");
+    axis->set_type(onnx::AttributeProto_AttributeType_INT);
+    axis->set_i(1);
+    current = "fourier.features";
   }
   for (std::size_t k = 0; k < num_layers; ++k) {
     const std::string prefix = "layer" + std::to_string(k);
@@ -219,7 +255,14 @@ std::vector<std::uint8_t> ExportMlpToOnnx(const Mlp& mlp, const OnnxExportOption
   AddMetadata(model, "input_description", options.input_description);
   AddMetadata(model, "output_description", options.output_description);
   AddMetadata(model, "activation", std::string(ToString(mlp.activation())));
-  AddMetadata(model, "normalization", options.fold_normalization ? "folded" : "explicit");
+  AddMetadata(model, "normalization",
+              fold_input
+                  ? "folded"
+                  : (options.fold_normalization ? "input explicit, output folded" : "explicit"));
+  AddMetadata(model, "fourier_features",
+              std::to_string(fourier.inputs) + " inputs x " + std::to_string(fourier.frequencies) +
+                  " frequencies, base " + std::to_string(fourier.base) +
+                  " rad per normalised unit");
   AddMetadata(model, "mlp_checksum", HashHex(mlp_bytes.data(), mlp_bytes.size()));
 
   CheckModelProto(model);

@@ -5,6 +5,8 @@
 // Graph (opset 13 by default, IR version 7), one sample per ROW, unlike Mlp::Forward:
 //   input  "input"  float [N, in]   raw features, as given to Mlp::Forward (u, v in px, then the
 //                                   normalised colour change dR, dG, dB)
+//   with Fourier features (recon/mlp.h): phases = Gemm(normalised input, frequencies), then
+//   Concat(normalised input, Sin(phases), Cos(phases)) is the first layer's input;
 //   Gemm(transB = 1, weights stored [out, in]) + activation per hidden layer, a final Gemm
 //   output "slopes" float [N, out]  tangent-frame slopes (gx, gy), de-normalised
 // Activations: Tanh, Relu, and silu as x * Sigmoid(x) (Sigmoid + Mul); all are handled by
@@ -14,7 +16,8 @@
 // float): W0' = W0 diag(1 / input_scale), b0' = b0 - W0' input_mean, W_last' =
 // diag(output_scale) W_last, b_last' = output_scale .* b_last + output_mean. The graph is then
 // just Gemms and activations. With fold_normalization = false the graph has explicit Sub / Div
-// nodes after the input and Mul / Add nodes before the output instead.
+// nodes after the input and Mul / Add nodes before the output instead. With Fourier features the
+// input's Sub / Div are always explicit (the phases need the normalised position).
 //
 // Metadata props: gs360_version, model_name, input_description, output_description,
 // activation, normalization ("folded" / "explicit"), mlp_checksum (HashHex of Mlp::Serialize()).

@@ -90,6 +90,7 @@ void HashPose(Hasher& h, const Rigid3d& p) {
 Json TrainOptionsJson(const TrainOptions& o) {
   return Json{{"hidden", o.hidden},
               {"activation", std::string(ToString(o.activation))},
+              {"fourier", {o.fourier.inputs, o.fourier.frequencies, o.fourier.base}},
               {"batch_size", o.batch_size},
               {"learning_rate", o.learning_rate},
               {"beta1", o.beta1},

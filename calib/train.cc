@@ -157,7 +157,8 @@ void Shuffle(std::vector<std::uint32_t>& perm, Rng& rng) {
 
 // Per-thread buffers for one chunk of a mini-batch.
 struct Workspace {
-  Eigen::MatrixXf x;                  // [in, chunk] normalised inputs
+  Eigen::MatrixXf x;                  // [in, chunk] raw inputs
+  Eigen::MatrixXf norm;               // [in, chunk] normalised inputs (Fourier features only)
   Eigen::MatrixXf y;                  // [out, chunk] normalised targets
   std::vector<Eigen::MatrixXf> act;   // act[k]: [sizes[k], chunk]; act[L] = linear output
   std::vector<Eigen::MatrixXf> pre;   // silu only: sigmoid of the hidden pre-activations
@@ -178,8 +179,14 @@ void ChunkGradient(const Mlp& mlp, Workspace& ws, Eigen::Index m, Eigen::Index b
   const Eigen::VectorXf in_inv_scale = mlp.input_scale().cwiseInverse();
   const Eigen::VectorXf& out_mean = mlp.output_mean();
   const Eigen::VectorXf out_inv_scale = mlp.output_scale().cwiseInverse();
-  ws.act[0].leftCols(m) =
-      ((ws.x.leftCols(m).colwise() - in_mean).array().colwise() * in_inv_scale.array()).matrix();
+  if (mlp.fourier().Enabled()) {
+    ws.norm.leftCols(m) =
+        ((ws.x.leftCols(m).colwise() - in_mean).array().colwise() * in_inv_scale.array()).matrix();
+    mlp.Encode(ws.norm.leftCols(m), ws.act[0].leftCols(m));
+  } else {
+    ws.act[0].leftCols(m) =
+        ((ws.x.leftCols(m).colwise() - in_mean).array().colwise() * in_inv_scale.array()).matrix();
+  }
   const auto target =
       ((ws.y.leftCols(m).colwise() - out_mean).array().colwise() * out_inv_scale.array());
   const auto& layers = mlp.layers();
@@ -236,11 +243,14 @@ void ChunkGradient(const Mlp& mlp, Workspace& ws, Eigen::Index m, Eigen::Index b
   }
 }
 
-Workspace MakeWorkspace(const std::vector<int>& sizes, Activation activation,
+// `sizes`: the layer widths as the network sees them (sizes[0] = Mlp::first_layer_input_size()),
+// `inputs`: the raw feature count.
+Workspace MakeWorkspace(const std::vector<int>& sizes, int inputs, Activation activation,
                         Eigen::Index chunk_max) {
   const int widest = *std::max_element(sizes.begin(), sizes.end());
   Workspace ws;
-  ws.x.resize(sizes.front(), chunk_max);
+  ws.x.resize(inputs, chunk_max);
+  if (inputs != sizes.front()) ws.norm.resize(inputs, chunk_max);
   ws.y.resize(sizes.back(), chunk_max);
   ws.act.resize(sizes.size());
   for (std::size_t k = 0; k < sizes.size(); ++k) ws.act[k].resize(sizes[k], chunk_max);
@@ -255,6 +265,13 @@ Workspace MakeWorkspace(const std::vector<int>& sizes, Activation activation,
     ws.grad_b.push_back(Eigen::VectorXf::Zero(sizes[k + 1]));
   }
   return ws;
+}
+
+// The widths each layer sees: sizes() with the input replaced by the first layer's input.
+std::vector<int> LayerSizes(const Mlp& mlp) {
+  std::vector<int> sizes = mlp.sizes();
+  sizes.front() = mlp.first_layer_input_size();
+  return sizes;
 }
 
 void CheckData(const char* name_x, const Eigen::MatrixXf& x, const char* name_y,
@@ -357,6 +374,12 @@ void TrainOptions::Check() const {
                                   "] = " + std::to_string(hidden[i]) + " must be in [1, 65536]");
     }
   }
+  try {
+    // The data's feature count is checked by Train; here only the option's own bounds.
+    fourier.Check(std::numeric_limits<int>::max());
+  } catch (const std::invalid_argument& e) {
+    throw std::invalid_argument(std::string("TrainOptions.fourier: ") + e.what());
+  }
   if (batch_size < 1)
     throw std::invalid_argument(Field("batch_size", batch_size) + " must be >= 1");
   if (!std::isfinite(learning_rate) || learning_rate <= 0.0) {
@@ -413,7 +436,7 @@ LossGradient ComputeLossGradient(const Mlp& mlp, const Eigen::MatrixXf& x,
                                 std::to_string(mlp.input_size()) + " -> " +
                                 std::to_string(mlp.output_size()));
   }
-  Workspace ws = MakeWorkspace(mlp.sizes(), mlp.activation(), x.cols());
+  Workspace ws = MakeWorkspace(LayerSizes(mlp), mlp.input_size(), mlp.activation(), x.cols());
   ws.x = x;
   ws.y = y;
   ChunkGradient(mlp, ws, x.cols(), x.cols());
@@ -468,8 +491,14 @@ TrainResult Train(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train
   const int num_layers = static_cast<int>(sizes.size()) - 1;
 
   TrainResult result;
-  result.mlp = Mlp(sizes, options.activation, options.seed);
+  if (options.fourier.inputs > sizes.front()) {
+    throw std::invalid_argument(
+        "Train: TrainOptions.fourier.inputs = " + std::to_string(options.fourier.inputs) +
+        " but the data has " + std::to_string(sizes.front()) + " features");
+  }
+  result.mlp = Mlp(sizes, options.activation, options.seed, options.fourier);
   Mlp& mlp = result.mlp;
+  sizes = LayerSizes(mlp);
   {
     Eigen::VectorXf mean, scale;
     RowStats(x_train, mean, scale);
@@ -484,7 +513,9 @@ TrainResult Train(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train
   const Activation activation = options.activation;
 
   std::vector<Workspace> spaces;
-  for (int t = 0; t < threads; ++t) spaces.push_back(MakeWorkspace(sizes, activation, chunk_max));
+  for (int t = 0; t < threads; ++t) {
+    spaces.push_back(MakeWorkspace(sizes, mlp.input_size(), activation, chunk_max));
+  }
   // Adam moments.
   std::vector<Eigen::MatrixXf> m_w, v_w;
   std::vector<Eigen::VectorXf> m_b, v_b;

@@ -52,6 +52,11 @@ struct TrainOptions {
   // loss 0.0074 / 0.0071 vs 0.0070 / 0.0073), relu is 15-20% worse; tanh is the faster in
   // inference. The plateau schedule beat cosine by 0-5%.
   Activation activation = Activation::kTanh;
+  // Fourier features of the first two inputs, the pixel position (recon/mlp.h). Measured on the
+  // 2,011-probe calibration set (64-64-64, 60 epochs): validation loss 0.082 without, 0.066 with
+  // 3 or 4 frequencies, 0.070 with 6 (it starts to fit noise); 128-wide layers without them
+  // reach the same 0.066 at three times the inference cost. {0, 0, 1} turns them off.
+  FourierFeatures fourier = {2, 4, 1.0f};
   int batch_size = 1024;
   // Adam.
   double learning_rate = 3e-3;

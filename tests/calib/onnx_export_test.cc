@@ -19,8 +19,8 @@ namespace {
 
 // A network with calibration-like normalisation (pixels up to 800 px, colour changes ~0.1) and
 // non-zero biases everywhere.
-Mlp CalibrationLikeMlp(Activation activation, std::uint64_t seed) {
-  Mlp mlp({5, 16, 12, 8, 2}, activation, seed);
+Mlp CalibrationLikeMlp(Activation activation, std::uint64_t seed, FourierFeatures fourier = {}) {
+  Mlp mlp({5, 16, 12, 8, 2}, activation, seed, fourier);
   int k = 0;
   for (auto& layer : mlp.layers())
     layer.bias = Eigen::VectorXf::LinSpaced(layer.bias.size(), -0.3f, 0.2f + 0.1f * k++);
@@ -93,6 +93,28 @@ TEST_CASE("ONNX export matches Mlp::Forward through OpenCV dnn", "[onnx]") {
       CHECK(expected.row(0).maxCoeff() - expected.row(0).minCoeff() > 0.1f);
       CHECK((actual - expected).cwiseAbs().maxCoeff() <= 1e-5f);
     }
+  }
+}
+
+TEST_CASE("ONNX export with Fourier features matches Mlp::Forward through OpenCV dnn", "[onnx]") {
+  const Eigen::MatrixXf x = RandomFeatures(500);
+  for (bool fold : {true, false}) {
+    INFO("fold " << fold);
+    // The calibration's default encoding: 4 frequencies of (u, v), the highest 8 rad per unit.
+    const Mlp mlp = CalibrationLikeMlp(Activation::kTanh, 5, FourierFeatures{2, 4, 1.0f});
+    OnnxExportOptions options;
+    options.fold_normalization = fold;
+    const std::vector<std::uint8_t> bytes = ExportMlpToOnnx(mlp, options);
+    CHECK_NOTHROW(CheckOnnxModel(bytes));
+    CHECK(Contains(bytes, "Sin"));
+    CHECK(Contains(bytes, "Cos"));
+    CHECK(Contains(bytes, "fourier_features"));
+    const Eigen::MatrixXf expected = mlp.Forward(x);
+    const Eigen::MatrixXf actual = RunWithOpenCv(bytes, x);
+    REQUIRE(actual.rows() == 2);
+    REQUIRE(actual.cols() == 500);
+    CHECK(expected.row(0).maxCoeff() - expected.row(0).minCoeff() > 0.1f);
+    CHECK((actual - expected).cwiseAbs().maxCoeff() <= 1e-5f);
   }
 }
 

@@ -96,58 +96,98 @@ TEST_CASE("Train learns a smooth function with every activation", "[train]") {
 
 TEST_CASE("Loss gradient matches central finite differences", "[train]") {
   for (Activation activation : {Activation::kTanh, Activation::kSilu, Activation::kRelu}) {
-    INFO("activation " << ToString(activation));
-    Mlp mlp({3, 6, 5, 2}, activation, 17);
-    for (auto& layer : mlp.layers()) layer.bias = Eigen::VectorXf::Random(layer.bias.size());
-    mlp.SetInputNormalization(Eigen::Vector3f(1.0f, -2.0f, 0.5f),
-                              Eigen::Vector3f(2.0f, 0.5f, 1.0f));
-    mlp.SetOutputNormalization(Eigen::Vector2f(0.3f, -0.1f), Eigen::Vector2f(0.7f, 1.3f));
-    Eigen::MatrixXf x = Eigen::MatrixXf::Random(3, 20) * 2.0f;
-    const Eigen::MatrixXf y = Eigen::MatrixXf::Random(2, 20);
-    const LossGradient g = ComputeLossGradient(mlp, x, y);
-    CHECK(g.loss == Approx(EvaluateLoss(mlp, x, y)).epsilon(1e-5));
-    REQUIRE(g.gradient.size() == 3u);
-    const float h = 1e-2f;
-    int checked = 0, matched = 0;
-    const auto check = [&](float& param, float analytic) {
-      const float saved = param;
-      param = saved + h;
-      const double plus = EvaluateLoss(mlp, x, y);
-      param = saved - h;
-      const double minus = EvaluateLoss(mlp, x, y);
-      param = saved;
-      const double numeric = (plus - minus) / (2.0 * h);
-      ++checked;
-      if (std::abs(numeric - analytic) <= 2e-3 + 0.02 * std::abs(numeric)) ++matched;
-    };
-    for (std::size_t k = 0; k < 3; ++k) {
-      auto& layer = mlp.layers()[k];
-      REQUIRE(g.gradient[k].weight.rows() == layer.weight.rows());
-      REQUIRE(g.gradient[k].weight.cols() == layer.weight.cols());
-      for (Eigen::Index r = 0; r < layer.weight.rows(); ++r) {
-        for (Eigen::Index c = 0; c < layer.weight.cols(); ++c) {
-          check(layer.weight(r, c), g.gradient[k].weight(r, c));
+    for (const FourierFeatures fourier : {FourierFeatures{}, FourierFeatures{2, 3, 0.8f}}) {
+      INFO("activation " << ToString(activation) << " fourier " << fourier.Width());
+      Mlp mlp({3, 6, 5, 2}, activation, 17, fourier);
+      for (auto& layer : mlp.layers()) layer.bias = Eigen::VectorXf::Random(layer.bias.size());
+      mlp.SetInputNormalization(Eigen::Vector3f(1.0f, -2.0f, 0.5f),
+                                Eigen::Vector3f(2.0f, 0.5f, 1.0f));
+      mlp.SetOutputNormalization(Eigen::Vector2f(0.3f, -0.1f), Eigen::Vector2f(0.7f, 1.3f));
+      Eigen::MatrixXf x = Eigen::MatrixXf::Random(3, 20) * 2.0f;
+      const Eigen::MatrixXf y = Eigen::MatrixXf::Random(2, 20);
+      const LossGradient g = ComputeLossGradient(mlp, x, y);
+      CHECK(g.loss == Approx(EvaluateLoss(mlp, x, y)).epsilon(1e-5));
+      REQUIRE(g.gradient.size() == 3u);
+      const float h = 1e-2f;
+      int checked = 0, matched = 0;
+      const auto check = [&](float& param, float analytic) {
+        const float saved = param;
+        param = saved + h;
+        const double plus = EvaluateLoss(mlp, x, y);
+        param = saved - h;
+        const double minus = EvaluateLoss(mlp, x, y);
+        param = saved;
+        const double numeric = (plus - minus) / (2.0 * h);
+        ++checked;
+        if (std::abs(numeric - analytic) <= 2e-3 + 0.02 * std::abs(numeric)) ++matched;
+      };
+      for (std::size_t k = 0; k < 3; ++k) {
+        auto& layer = mlp.layers()[k];
+        REQUIRE(g.gradient[k].weight.rows() == layer.weight.rows());
+        REQUIRE(g.gradient[k].weight.cols() == layer.weight.cols());
+        for (Eigen::Index r = 0; r < layer.weight.rows(); ++r) {
+          for (Eigen::Index c = 0; c < layer.weight.cols(); ++c) {
+            check(layer.weight(r, c), g.gradient[k].weight(r, c));
+          }
+          check(layer.bias[r], g.gradient[k].bias[r]);
         }
-        check(layer.bias[r], g.gradient[k].bias[r]);
       }
+      CHECK(checked == mlp.ParameterCount());
+      // relu has kinks that a finite step may cross; the smooth activations must match everywhere.
+      if (activation == Activation::kRelu) {
+        CHECK(matched >= checked * 9 / 10);
+      } else {
+        CHECK(matched == checked);
+      }
+      // A gradient step lowers the loss.
+      for (std::size_t k = 0; k < 3; ++k) {
+        mlp.layers()[k].weight -= 0.05f * g.gradient[k].weight;
+        mlp.layers()[k].bias -= 0.05f * g.gradient[k].bias;
+      }
+      CHECK(EvaluateLoss(mlp, x, y) < g.loss);
     }
-    CHECK(checked == mlp.ParameterCount());
-    // relu has kinks that a finite step may cross; the smooth activations must match everywhere.
-    if (activation == Activation::kRelu) {
-      CHECK(matched >= checked * 9 / 10);
-    } else {
-      CHECK(matched == checked);
-    }
-    // A gradient step lowers the loss.
-    for (std::size_t k = 0; k < 3; ++k) {
-      mlp.layers()[k].weight -= 0.05f * g.gradient[k].weight;
-      mlp.layers()[k].bias -= 0.05f * g.gradient[k].bias;
-    }
-    CHECK(EvaluateLoss(mlp, x, y) < g.loss);
   }
   CHECK_THROWS_AS(ComputeLossGradient(Mlp({3, 2}, Activation::kTanh, 1), Eigen::MatrixXf(2, 4),
                                       Eigen::MatrixXf(2, 4)),
                   std::invalid_argument);
+}
+
+TEST_CASE("Fourier features let a small network follow a pattern across the image", "[train]") {
+  // A target that oscillates across the image (like the fin shadows and LED fall-off the
+  // calibration MLP must follow) plus a smooth dependence on a colour-like input.
+  std::mt19937_64 rng(3);
+  std::uniform_real_distribution<float> unit(-1.0f, 1.0f);
+  const auto make = [&](int n) {
+    Data d{Eigen::MatrixXf(3, n), Eigen::MatrixXf(1, n)};
+    for (int i = 0; i < n; ++i) {
+      const float u = unit(rng), v = unit(rng), c = unit(rng);
+      d.x(0, i) = 320.0f + 300.0f * u;
+      d.x(1, i) = 240.0f + 220.0f * v;
+      d.x(2, i) = 0.1f * c;
+      d.y(0, i) = std::sin(9.0f * u) * std::cos(7.0f * v) + c;
+    }
+    return d;
+  };
+  const Data train = make(6000), val = make(1000);
+  TrainOptions o = SmallOptions();
+  o.hidden = {16, 16};
+  o.max_epochs = 30;
+  o.fourier = {};
+  const TrainResult plain = Train(train.x, train.y, val.x, val.y, o);
+  o.fourier = FourierFeatures{2, 4, 1.0f};
+  const TrainResult fourier = Train(train.x, train.y, val.x, val.y, o);
+  CHECK(fourier.mlp.fourier().frequencies == 4);
+  CHECK(fourier.mlp.layers()[0].weight.cols() == 3 + 16);
+  INFO("val loss plain " << plain.best_val_loss << " fourier " << fourier.best_val_loss);
+  CHECK(fourier.best_val_loss < 0.5 * plain.best_val_loss);
+  // More encoded inputs than features is a clear error.
+  o.fourier = FourierFeatures{4, 2, 1.0f};
+  try {
+    Train(train.x, train.y, val.x, val.y, o);
+    FAIL("no throw");
+  } catch (const std::invalid_argument& e) {
+    CHECK(std::string(e.what()).find("fourier.inputs = 4") != std::string::npos);
+  }
 }
 
 TEST_CASE("Train reports a consistent curve and calls progress", "[train]") {
@@ -247,6 +287,15 @@ TEST_CASE("Train handles tiny batches and more threads than samples", "[train]")
   const TrainResult c = Train(train.x, train.y, val.x, val.y, o);
   CHECK(c.mlp.input_scale()[1] == 1.0f);
   CHECK(c.mlp.input_mean()[1] == 4.0f);
+}
+
+TEST_CASE("TrainOptions::Check names a bad Fourier field", "[train]") {
+  CHECK(CheckMessage([](TrainOptions& o) {
+          o.fourier.frequencies = 40;
+        }).find("fourier: FourierFeatures: frequencies = 40") != std::string::npos);
+  CHECK(CheckMessage([](TrainOptions& o) { o.fourier.base = -1.0f; }).find("base") !=
+        std::string::npos);
+  CHECK(CheckMessage([](TrainOptions& o) { o.fourier = {}; }).empty());
 }
 
 TEST_CASE("TrainOptions::Check names the bad field", "[train]") {

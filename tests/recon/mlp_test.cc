@@ -6,6 +6,8 @@
 #include <limits>
 #include <stdexcept>
 
+#include "geometry/hash.h"
+
 namespace gs360 {
 namespace {
 
@@ -69,6 +71,36 @@ void RequireSameNetwork(const Mlp& a, const Mlp& b) {
   }
 }
 
+// 3 -> 4 -> 2 with Fourier features of the first two inputs.
+Mlp FourierNetwork(std::uint64_t seed) {
+  Mlp mlp({3, 4, 2}, Activation::kTanh, seed, FourierFeatures{2, 3, 0.7f});
+  for (auto& layer : mlp.layers()) layer.bias.setRandom();
+  mlp.SetInputNormalization(Eigen::Vector3f(300.0f, 200.0f, 0.1f),
+                            Eigen::Vector3f(150.0f, 100.0f, 0.5f));
+  mlp.SetOutputNormalization(Eigen::Vector2f(0.1f, -0.1f), Eigen::Vector2f(0.7f, 0.9f));
+  return mlp;
+}
+
+// FourierNetwork evaluated by hand in double precision, following the header's layout.
+Eigen::Vector2d FourierByHand(const Mlp& mlp, const Eigen::Vector3d& x) {
+  Eigen::Vector3d a;
+  for (int i = 0; i < 3; ++i) a[i] = (x[i] - mlp.input_mean()[i]) / mlp.input_scale()[i];
+  Eigen::VectorXd a0(3 + 12);
+  a0.head(3) = a;
+  for (int i = 0; i < 2; ++i) {
+    for (int j = 0; j < 3; ++j) {
+      const double phase = 0.7 * std::pow(2.0, j) * a[i];
+      a0[3 + i * 3 + j] = std::sin(phase);
+      a0[3 + 6 + i * 3 + j] = std::cos(phase);
+    }
+  }
+  const auto& l = mlp.layers();
+  const Eigen::VectorXd h =
+      (l[0].weight.cast<double>() * a0 + l[0].bias.cast<double>()).array().tanh().matrix();
+  const Eigen::Vector2d z = l[1].weight.cast<double>() * h + l[1].bias.cast<double>();
+  return z.cwiseProduct(mlp.output_scale().cast<double>()) + mlp.output_mean().cast<double>();
+}
+
 std::string ErrorOf(std::span<const std::uint8_t> bytes) {
   try {
     Mlp::Deserialize(bytes);
@@ -98,6 +130,62 @@ TEST_CASE("Mlp tiny network matches the hand computation", "[mlp]") {
   const double expected = (1.5 * std::tanh(-0.4) - 0.5 * std::tanh(2.05) + 0.3) * 3.0 + 10.0;
   CHECK(TinyNetwork(Activation::kTanh).Forward(Eigen::Vector2f(3.0f, 6.0f))(0, 0) ==
         Approx(expected).margin(1e-5));
+}
+
+TEST_CASE("Mlp with Fourier features matches the hand computation", "[mlp]") {
+  const Mlp mlp = FourierNetwork(4);
+  REQUIRE(mlp.first_layer_input_size() == 15);
+  REQUIRE(mlp.layers()[0].weight.cols() == 15);
+  CHECK(mlp.ParameterCount() == 4 * 15 + 4 + 2 * 4 + 2);
+  Eigen::MatrixXf x(3, 1500);
+  x.setRandom();
+  x.row(0) = (x.row(0).array() * 320.0f + 320.0f).matrix();
+  x.row(1) = (x.row(1).array() * 240.0f + 240.0f).matrix();
+  const Eigen::MatrixXf y = mlp.Forward(x);
+  for (int c : {0, 1, 700, 1023, 1024, 1499}) {
+    const Eigen::Vector2d expected = FourierByHand(mlp, x.col(c).cast<double>());
+    CHECK(y(0, c) == Approx(expected[0]).margin(1e-5));
+    CHECK(y(1, c) == Approx(expected[1]).margin(1e-5));
+  }
+  // The encoding really enters: zeroing the Fourier columns changes the output.
+  Mlp plain = mlp;
+  plain.layers()[0].weight.rightCols(12).setZero();
+  CHECK((plain.Forward(x) - y).cwiseAbs().maxCoeff() > 1e-3f);
+  // Encode: the normalised rows on top, then sin, then cos.
+  Eigen::MatrixXf a = Eigen::MatrixXf::Zero(3, 1);
+  a(0, 0) = 1.0f;
+  Eigen::MatrixXf a0(15, 1);
+  mlp.Encode(a, a0);
+  CHECK(a0(0, 0) == 1.0f);
+  CHECK(a0(3, 0) == Approx(std::sin(0.7)).margin(1e-6));
+  CHECK(a0(5, 0) == Approx(std::sin(2.8)).margin(1e-6));
+  CHECK(a0(6, 0) == 0.0f);  // sin of input 1's phase 0
+  CHECK(a0(9 + 2, 0) == Approx(std::cos(2.8)).margin(1e-6));
+  CHECK(a0(12, 0) == 1.0f);  // cos of input 1's phase 0
+  Eigen::MatrixXf wrong(14, 1);
+  CHECK_THROWS_AS(mlp.Encode(a, wrong), std::invalid_argument);
+}
+
+TEST_CASE("Mlp Fourier options are validated", "[mlp]") {
+  CHECK_THROWS_AS(Mlp({3, 4, 2}, Activation::kTanh, 1, FourierFeatures{4, 2, 1.0f}),
+                  std::invalid_argument);
+  CHECK_THROWS_AS(Mlp({3, 4, 2}, Activation::kTanh, 1, FourierFeatures{2, 17, 1.0f}),
+                  std::invalid_argument);
+  CHECK_THROWS_AS(Mlp({3, 4, 2}, Activation::kTanh, 1, FourierFeatures{2, 2, 0.0f}),
+                  std::invalid_argument);
+  CHECK_THROWS_AS(Mlp({3, 4, 2}, Activation::kTanh, 1,
+                      FourierFeatures{2, 2, std::numeric_limits<float>::quiet_NaN()}),
+                  std::invalid_argument);
+  try {
+    Mlp({3, 4, 2}, Activation::kTanh, 1, FourierFeatures{-1, 2, 1.0f});
+    FAIL("no throw");
+  } catch (const std::invalid_argument& e) {
+    CHECK(std::string(e.what()).find("inputs = -1") != std::string::npos);
+  }
+  // Frequencies without inputs (or the reverse) is simply no encoding.
+  CHECK(
+      Mlp({3, 4, 2}, Activation::kTanh, 1, FourierFeatures{0, 4, 1.0f}).first_layer_input_size() ==
+      3);
 }
 
 TEST_CASE("Mlp Forward is column independent across blocks", "[mlp]") {
@@ -179,6 +267,48 @@ TEST_CASE("Mlp serialisation round trip is exact", "[mlp]") {
   CHECK(back.Serialize() == bytes);
 }
 
+TEST_CASE("Mlp with Fourier features round-trips, and version 1 blobs still load", "[mlp]") {
+  const Mlp mlp = FourierNetwork(6);
+  const std::vector<std::uint8_t> bytes = mlp.Serialize();
+  const Mlp back = Mlp::Deserialize(bytes);
+  RequireSameNetwork(mlp, back);
+  CHECK(back.fourier().inputs == 2);
+  CHECK(back.fourier().frequencies == 3);
+  CHECK(back.fourier().base == 0.7f);
+  const Eigen::MatrixXf x = Eigen::MatrixXf::Random(3, 50) * 300.0f;
+  CHECK(mlp.Forward(x) == back.Forward(x));
+  for (std::size_t len = 0; len < bytes.size(); ++len) {
+    INFO("length " << len);
+    CHECK_FALSE(ErrorOf(std::span(bytes.data(), len)).empty());
+  }
+
+  // A version 1 blob (written before the Fourier features existed): the version 2 layout of a
+  // network without them, minus the three Fourier fields after the sizes, re-checksummed.
+  const Mlp plain = RandomNetwork(6);
+  std::vector<std::uint8_t> v1 = plain.Serialize();
+  const std::size_t sizes_end = 8 + 4 + 4 + 4 + 4 * plain.sizes().size();
+  v1.erase(v1.begin() + static_cast<std::ptrdiff_t>(sizes_end),
+           v1.begin() + static_cast<std::ptrdiff_t>(sizes_end + 12));
+  v1[8] = 1;
+  v1.resize(v1.size() - 8);
+  const std::uint64_t checksum = Hasher().Add(v1.data(), v1.size()).Digest();
+  for (int b = 0; b < 8; ++b) v1.push_back(static_cast<std::uint8_t>(checksum >> (8 * b)));
+  const Mlp old = Mlp::Deserialize(v1);
+  RequireSameNetwork(plain, old);
+  CHECK_FALSE(old.fourier().Enabled());
+  const Eigen::MatrixXf x5 = Eigen::MatrixXf::Random(5, 50) * 100.0f;
+  CHECK(old.Forward(x5) == plain.Forward(x5));
+
+  // Fourier fields that do not fit the network are a clear error even with a valid checksum.
+  std::vector<std::uint8_t> bad = bytes;
+  const std::size_t inputs_at = 8 + 4 + 4 + 4 + 4 * mlp.sizes().size();
+  bad[inputs_at] = 7;  // 7 encoded inputs for a 3-input network
+  bad.resize(bad.size() - 8);
+  const std::uint64_t bad_sum = Hasher().Add(bad.data(), bad.size()).Digest();
+  for (int b = 0; b < 8; ++b) bad.push_back(static_cast<std::uint8_t>(bad_sum >> (8 * b)));
+  CHECK(ErrorOf(bad).find("inputs = 7") != std::string::npos);
+}
+
 TEST_CASE("Mlp deserialisation rejects truncated and corrupt data", "[mlp]") {
   const std::vector<std::uint8_t> bytes = RandomNetwork(9).Serialize();
   SECTION("truncation at every length") {
@@ -207,8 +337,8 @@ TEST_CASE("Mlp deserialisation rejects truncated and corrupt data", "[mlp]") {
     bad[0] = 'X';
     CHECK(ErrorOf(bad).find("magic") != std::string::npos);
     bad = bytes;
-    bad[8] = 2;  // version
-    CHECK(ErrorOf(bad).find("version 2") != std::string::npos);
+    bad[8] = 3;  // version
+    CHECK(ErrorOf(bad).find("version 3") != std::string::npos);
     bad = bytes;
     bad.push_back(0);
     CHECK(ErrorOf(bad).find("trailing") != std::string::npos);
