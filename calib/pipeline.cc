@@ -500,6 +500,7 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
     h.AddPod(po.ransac_probes).AddDouble(po.ransac_threshold_px).AddPod(po.ransac_iterations);
     h.AddPod(po.max_iterations).AddDouble(po.huber_px).AddDouble(po.outlier_px);
     h.AddPod(po.min_observations).AddPod(po.model_bias).AddPod(po.bias_rounds);
+    h.Add("view").AddDouble(po.max_view_angle_deg).AddDouble(po.min_view_fraction);
     h.AddDouble(po.render.margin_px).AddDouble(po.render.max_slope_deg);
     h.AddDouble(po.surface_map.max_view_angle_deg).AddDouble(po.surface_map.fin_margin_px);
     h.AddPod(po.seed);
@@ -538,6 +539,8 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
           (*metrics)["bias_rounds"] = r.bias_rounds;
           (*metrics)["mean_bias_px"] = r.mean_bias_px;
           (*metrics)["outliers"] = r.outliers;
+          (*metrics)["oblique_excluded"] = r.oblique;
+          (*metrics)["view_bound_deg"] = r.view_bound_deg;
           (*metrics)["moved_from_nominal_mm"] =
               TranslationDifferenceMm(r.cam_from_sensor, inputs.nominal_cam_from_sensor);
           (*metrics)["moved_from_nominal_deg"] =

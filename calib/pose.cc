@@ -4,6 +4,7 @@
 #include <array>
 #include <chrono>
 #include <cmath>
+#include <numbers>
 #include <numeric>
 #include <random>
 #include <sstream>
@@ -156,6 +157,12 @@ void PoseOptions::Check() const {
   if (max_iterations < 1) ThrowField("max_iterations", max_iterations, "must be >= 1");
   if (!(huber_px > 0.0)) ThrowField("huber_px", huber_px, "must be > 0");
   if (!(outlier_px > 0.0)) ThrowField("outlier_px", outlier_px, "must be > 0");
+  if (!(max_view_angle_deg > 0.0 && max_view_angle_deg <= 90.0)) {
+    ThrowField("max_view_angle_deg", max_view_angle_deg, "must be in (0, 90]");
+  }
+  if (!(min_view_fraction > 0.0 && min_view_fraction <= 1.0)) {
+    ThrowField("min_view_fraction", min_view_fraction, "must be in (0, 1]");
+  }
   if (min_observations < 6) ThrowField("min_observations", min_observations, "must be >= 6");
   if (bias_rounds < 1) ThrowField("bias_rounds", bias_rounds, "must be >= 1");
   if (!(ball_radius_mm > 0.0) || !std::isfinite(ball_radius_mm)) {
@@ -164,6 +171,14 @@ void PoseOptions::Check() const {
   if (threads < 1 || threads > 64) ThrowField("threads", threads, "must be in [1, 64]");
   render.Check();
   surface_map.Check();
+}
+
+double ObservationViewAngle(const PoseObservation& observation, const Rigid3d& cam_from_sensor) {
+  const Eigen::Vector3d x = cam_from_sensor * observation.contact_point_sensor;
+  const Eigen::Vector3d n = cam_from_sensor.RotateDirection(observation.contact_normal_sensor);
+  const double xn = x.norm(), nn = n.norm();
+  if (!(xn > 0.0) || !(nn > 0.0)) return 0.5 * std::numbers::pi;
+  return std::acos(std::min(1.0, std::abs(x.dot(n)) / (xn * nn)));
 }
 
 PoseFit RefineCamFromSensor(const FisheyeCamera& camera,
@@ -315,21 +330,47 @@ PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
     result.paper_rms_px = std::sqrt(sum / static_cast<double>(ransac_inliers.size()));
   }
 
-  // 2. Refinement over all probes, without offsets.
-  PoseFit fit =
-      RefineCamFromSensor(camera, observations, {}, result.paper_cam_from_sensor, options);
+  // 2. The observations the refinement uses: those seen at most max_view_angle_deg from their
+  // normal at the paper estimate (at least min_view_fraction of them, the least oblique).
+  std::vector<std::size_t> chosen;
+  {
+    std::vector<double> view(n);
+    for (std::size_t i = 0; i < n; ++i) {
+      view[i] = ObservationViewAngle(observations[i], result.paper_cam_from_sensor);
+    }
+    std::vector<double> sorted = view;
+    std::sort(sorted.begin(), sorted.end());
+    const std::size_t keep =
+        std::min(n, std::max(static_cast<std::size_t>(options.min_observations),
+                             static_cast<std::size_t>(
+                                 std::ceil(options.min_view_fraction * static_cast<double>(n)))));
+    const double bound =
+        std::max(options.max_view_angle_deg * std::numbers::pi / 180.0, sorted[keep - 1]);
+    for (std::size_t i = 0; i < n; ++i) {
+      if (view[i] <= bound) chosen.push_back(i);
+    }
+    result.view_bound_deg = bound * 180.0 / std::numbers::pi;
+    result.oblique = static_cast<int>(n - chosen.size());
+  }
+  std::vector<PoseObservation> used;
+  used.reserve(chosen.size());
+  for (std::size_t i : chosen) used.push_back(observations[i]);
+  const std::size_t n_used = used.size();
 
-  // 3. Bias model: offsets from rendered imprints under the current pose, then refit.
+  // 3. Refinement over the chosen probes, without offsets.
+  PoseFit fit = RefineCamFromSensor(camera, used, {}, result.paper_cam_from_sensor, options);
+
+  // 4. Bias model: offsets from rendered imprints under the current pose, then refit.
   if (options.model_bias) {
-    std::vector<Eigen::Vector2d> offsets(n, Eigen::Vector2d::Zero());
+    std::vector<Eigen::Vector2d> offsets(n_used, Eigen::Vector2d::Zero());
     for (int round = 0; round < options.bias_rounds; ++round) {
       const Rigid3d pose = fit.cam_from_sensor;
       const SurfaceMap map =
           SurfaceMap::Build(camera, pose, *scene.gel, scene.fins, options.surface_map);
-      std::vector<char> empty(n, 0);
+      std::vector<char> empty(n_used, 0);
       auto work = [&](std::size_t begin, std::size_t end) {
         for (std::size_t i = begin; i < end; ++i) {
-          const PoseObservation& o = observations[i];
+          const PoseObservation& o = used[i];
           const ProbeRender pr = RenderProbe(map, camera, pose * o.ball_center_sensor,
                                              options.ball_radius_mm, options.render);
           if (pr.contact_pixels == 0) {
@@ -341,30 +382,30 @@ PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
         }
       };
       const std::size_t threads =
-          std::min<std::size_t>(static_cast<std::size_t>(options.threads), n);
+          std::min<std::size_t>(static_cast<std::size_t>(options.threads), n_used);
       std::vector<std::thread> pool;
-      const std::size_t chunk = (n + threads - 1) / threads;
+      const std::size_t chunk = (n_used + threads - 1) / threads;
       for (std::size_t t = 1; t < threads; ++t) {
-        pool.emplace_back(work, std::min(n, t * chunk), std::min(n, (t + 1) * chunk));
+        pool.emplace_back(work, std::min(n_used, t * chunk), std::min(n_used, (t + 1) * chunk));
       }
-      work(0, std::min(n, chunk));
+      work(0, std::min(n_used, chunk));
       for (std::thread& t : pool) t.join();
-      fit = RefineCamFromSensor(camera, observations, offsets, pose, options);
+      fit = RefineCamFromSensor(camera, used, offsets, pose, options);
       result.bias_rounds = round + 1;
       result.no_rendered_contact =
           static_cast<int>(std::count(empty.begin(), empty.end(), static_cast<char>(1)));
       double sum = 0.0;
       for (const Eigen::Vector2d& b : offsets) sum += b.norm();
-      result.mean_bias_px = sum / static_cast<double>(n);
+      result.mean_bias_px = sum / static_cast<double>(n_used);
     }
   }
 
   result.cam_from_sensor = fit.cam_from_sensor;
   result.rms_px = fit.rms_px;
   result.inliers = fit.inliers;
-  result.outliers = static_cast<int>(n) - fit.inliers;
-  for (std::size_t i = 0; i < n; ++i) {
-    if (!fit.inlier[i]) result.outlier_probe_indices.push_back(observations[i].probe_index);
+  result.outliers = static_cast<int>(n_used) - fit.inliers;
+  for (std::size_t i = 0; i < n_used; ++i) {
+    if (!fit.inlier[i]) result.outlier_probe_indices.push_back(used[i].probe_index);
   }
   result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   return result;

@@ -12,6 +12,8 @@
 
 #include "calib/impression_centroid.h"
 #include "calib/render.h"
+#include "geometry/sampling.h"
+#include "geometry/shapes.h"
 #include "recon/surface_map.h"
 #include "sim/ground_truth.h"
 #include "sim/rig_model.h"
@@ -47,6 +49,36 @@ std::vector<PoseObservation> SampleSurface(const SimRig& rig, int count, std::ui
     o.contact_normal_sensor = sensor_from_cam.RotateDirection(map.normal0(u, v)).normalized();
     o.ball_center_sensor =
         o.contact_point_sensor + o.contact_normal_sensor * (rig.ball_radius() - 1.0);
+    out.push_back(o);
+  }
+  return out;
+}
+
+// Area-uniform visible points of the sensor (as the planner samples), seen by the nominal camera
+// at most 70 deg from their normal.
+std::vector<PoseObservation> SampleSurfaceUniform(const SimRig& rig, int count,
+                                                  std::uint64_t seed) {
+  const FisheyeCamera nominal(rig.nominal_intrinsics());
+  const Rigid3d cam_from_sensor = rig.nominal_cam_from_sensor();
+  const SurfaceMap map = SurfaceMap::Build(nominal, cam_from_sensor, rig.gel_bvh(), &rig.fin_bvh());
+  const auto keep = [&](const SurfaceSample& s) {
+    const Eigen::Vector3d x = cam_from_sensor * s.point;
+    const auto px = nominal.CamToPixel(x);
+    if (!px) return false;
+    const int u = static_cast<int>(std::lround(px->x())),
+              v = static_cast<int>(std::lround(px->y()));
+    if (u < 0 || v < 0 || u >= map.width() || v >= map.height() || !map.visible(u, v)) return false;
+    if ((map.point0(u, v) - x).norm() > 0.3) return false;  // hidden behind other gel
+    const Eigen::Vector3d n = cam_from_sensor.RotateDirection(s.normal);
+    return std::acos(std::abs(n.dot(x.normalized()))) <= 70.0 / kRadToDeg;
+  };
+  std::vector<PoseObservation> out;
+  for (const SurfaceSample& s : SampleUniform(rig.gel_mesh(), count, seed, keep)) {
+    PoseObservation o;
+    o.probe_index = static_cast<int>(out.size());
+    o.contact_point_sensor = s.point;
+    o.contact_normal_sensor = s.normal;
+    o.ball_center_sensor = s.point + s.normal * (rig.ball_radius() - 1.0);
     out.push_back(o);
   }
   return out;
@@ -88,6 +120,7 @@ TEST_CASE("EstimateCamFromSensor: exact projections with noise and outliers", "[
     }
     PoseOptions options;
     options.model_bias = false;
+    options.max_view_angle_deg = 90.0;  // exact projections: every view angle is usable
     const PoseResult r = EstimateCamFromSensor(camera, obs, nominal, options);
     INFO("offset " << mm << " mm " << deg << " deg: refined "
                    << CentreErrorMm(r.cam_from_sensor, truth) << " mm "
@@ -101,6 +134,7 @@ TEST_CASE("EstimateCamFromSensor: exact projections with noise and outliers", "[
     CHECK(r.outliers == static_cast<int>(planted.size()));
     CHECK(std::set<int>(r.outlier_probe_indices.begin(), r.outlier_probe_indices.end()) == planted);
     CHECK(r.inliers + r.outliers == 600);
+    CHECK(r.oblique == 0);
     CHECK(r.bias_rounds == 0);
   }
 }
@@ -155,6 +189,108 @@ TEST_CASE("EstimateCamFromSensor: the bias model removes the imprint's bias", "[
   CHECK(biased_mm < 0.005);
   CHECK(biased_deg < 0.005);
   CHECK(biased_mm < plain_mm);
+}
+
+// Image direction (unit) of the imprint's near side: moving from the contact point along the
+// surface toward the camera.
+Eigen::Vector2d NearSideDirection(const FisheyeCamera& camera, const Rigid3d& cam_from_sensor,
+                                  const PoseObservation& o) {
+  const Eigen::Vector3d x = cam_from_sensor * o.contact_point_sensor;
+  const Eigen::Vector3d n = cam_from_sensor.RotateDirection(o.contact_normal_sensor).normalized();
+  Eigen::Vector3d toward = -x.normalized();
+  toward -= toward.dot(n) * n;
+  if (toward.norm() < 1e-9) return Eigen::Vector2d::Zero();
+  const Eigen::Vector2d d =
+      camera.ProjectUnchecked(x + 0.01 * toward.normalized()) - camera.ProjectUnchecked(x);
+  return d.normalized();
+}
+
+// The failure measured on the virtual rig's stored runs (bench/bench_pose_db.cc): impressions seen
+// more than 50 deg from their normal have centres ~1.5 px (median) toward their near side (their
+// far side's shading falls under the region threshold), which the rigid bias model does not
+// predict. On the cone that biased band is a third of the probes and pulled the refined pose
+// 0.10 deg off. Here: rigid imprint centroids on an area-uniform cone sample, 0.2 px noise, and
+// the measured 1.5 px near-side shift planted on the oblique ones.
+TEST_CASE("EstimateCamFromSensor: oblique impressions are left out of the refinement", "[pose]") {
+  SimRigOptions rig_options;
+  rig_options.shape.shape = SensorShape::kCone;
+  const SimRig rig(rig_options);
+  const FisheyeCamera camera(rig.nominal_intrinsics());
+  const Rigid3d nominal = rig.nominal_cam_from_sensor();
+  const Rigid3d truth = Offset(nominal, 0.3, 1.0);
+  const SurfaceMap true_map = SurfaceMap::Build(camera, truth, rig.gel_bvh(), &rig.fin_bvh());
+  std::mt19937_64 rng(17);
+  std::normal_distribution<double> noise(0.0, 0.2);
+  std::vector<PoseObservation> obs;
+  int oblique = 0;
+  for (PoseObservation o : SampleSurfaceUniform(rig, 500, 21)) {
+    o.centroid_px =
+        RenderedHullCentroid(true_map, camera, truth * o.ball_center_sensor, rig.ball_radius());
+    if (!o.centroid_px.allFinite()) continue;
+    o.centroid_px += Eigen::Vector2d(noise(rng), noise(rng));
+    if (ObservationViewAngle(o, truth) * kRadToDeg > 50.0) {
+      o.centroid_px += 1.5 * NearSideDirection(camera, truth, o);
+      ++oblique;
+    }
+    obs.push_back(o);
+  }
+  REQUIRE(obs.size() > 450);
+  REQUIRE(oblique > 100);
+  PoseOptions options;
+  options.ball_radius_mm = rig.ball_radius();
+  const PoseScene scene{&rig.gel_bvh(), &rig.fin_bvh()};
+  const PoseResult r = EstimateCamFromSensor(camera, obs, nominal, options, scene);
+  options.max_view_angle_deg = 90.0;
+  const PoseResult all = EstimateCamFromSensor(camera, obs, nominal, options, scene);
+  const double mm = CentreErrorMm(r.cam_from_sensor, truth);
+  const double deg = RotationErrorDeg(r.cam_from_sensor, truth);
+  const double all_mm = CentreErrorMm(all.cam_from_sensor, truth);
+  const double all_deg = RotationErrorDeg(all.cam_from_sensor, truth);
+  INFO(oblique << " oblique of " << obs.size() << "; view bound " << r.view_bound_deg << " deg, "
+               << r.oblique << " left out: " << mm << " mm " << deg << " deg, rms " << r.rms_px
+               << "; all: " << all_mm << " mm " << all_deg << " deg, rms " << all.rms_px);
+  CHECK(r.view_bound_deg == Approx(50.0));
+  // The paper pose is within ~0.3 deg of the truth, so the split matches the planted one closely.
+  CHECK(std::abs(r.oblique - oblique) < oblique / 10);
+  CHECK(r.inliers + r.outliers + r.oblique == static_cast<int>(obs.size()));
+  CHECK(mm < 0.003);
+  CHECK(deg < 0.012);
+  CHECK(r.rms_px < 0.35);  // the planted noise: 0.2 px per axis
+  // The scene exercises the failure: with every observation the pose is pulled (about 0.005 mm
+  // and 0.022 deg here) and the residuals carry the planted bias.
+  CHECK(all_deg > 2.0 * deg);
+  CHECK(all_mm > 2.0 * mm);
+  CHECK(all.rms_px > 2.0 * r.rms_px);
+}
+
+// The same on the virtual rig's cone, pressed through the simulated camera (elastic gel, LED
+// lighting, noise): the impression regions of the oblique probes are biased by their shading.
+TEST_CASE("EstimateCamFromSensor: the view bound keeps the least oblique when too few qualify",
+          "[pose]") {
+  const SimRig& rig = *DefaultRig();
+  const FisheyeCamera camera(rig.nominal_intrinsics());
+  const Rigid3d nominal = rig.nominal_cam_from_sensor();
+  const Rigid3d truth = Offset(nominal, 0.3, 1.0);
+  std::vector<PoseObservation> obs = SampleSurface(rig, 300, 4);
+  for (PoseObservation& o : obs) {
+    o.centroid_px = camera.ProjectUnchecked(truth * o.contact_point_sensor);
+  }
+  PoseOptions options;
+  options.model_bias = false;
+  options.max_view_angle_deg = 5.0;  // almost nothing qualifies
+  options.min_view_fraction = 0.4;
+  const PoseResult r = EstimateCamFromSensor(camera, obs, nominal, options);
+  CHECK(r.inliers + r.outliers == 120);  // ceil(0.4 * 300)
+  CHECK(r.oblique == 180);
+  CHECK(r.view_bound_deg > 5.0);
+  CHECK(CentreErrorMm(r.cam_from_sensor, truth) < 1e-3);
+  CHECK(RotationErrorDeg(r.cam_from_sensor, truth) < 1e-3);
+  PoseOptions bad;
+  bad.max_view_angle_deg = 0.0;
+  CHECK_THROWS_WITH(bad.Check(), Catch::Contains("max_view_angle_deg"));
+  bad = {};
+  bad.min_view_fraction = 1.5;
+  CHECK_THROWS_WITH(bad.Check(), Catch::Contains("min_view_fraction"));
 }
 
 TEST_CASE("EstimateCamFromSensor: simulated impressions", "[pose]") {
