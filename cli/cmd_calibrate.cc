@@ -27,6 +27,8 @@ struct CalibrateArgs {
   double edge_exclusion = -1.0;
   double smooth_sigma = -1.0;
   std::string integration;
+  double min_view_angle = -1.0;
+  int fourier_frequencies = -1;
   int max_validation_probes = 0;
   std::int64_t sim_truth_seed = -1;
 };
@@ -62,6 +64,12 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
   cmd->add_option("--integration", a.integration,
                   "Default integrator of the model: heightfield, discontinuity or poisson "
                   "(validation reports all three)");
+  cmd->add_option("--hf-min-view-angle", a.min_view_angle,
+                  "Imprints seen more squarely than this (deg) use the discontinuity-aware "
+                  "integrator instead of the height field (default 30; 0 = height field always)");
+  cmd->add_option("--fourier", a.fourier_frequencies,
+                  "Fourier features of the pixel position: frequencies per coordinate "
+                  "(default 4; 0 = raw u, v only)");
   cmd->add_option("--smooth-sigma", a.smooth_sigma,
                   "Gaussian smoothing (px) of the colour difference before the MLP (default 1)");
   cmd->add_option("--max-validation-probes", a.max_validation_probes,
@@ -89,6 +97,11 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
       options.reconstruction.integration.method = ParseIntegrationMethod(a.integration);
     }
     if (a.smooth_sigma >= 0.0) options.reconstruction.difference.smooth_sigma_px = a.smooth_sigma;
+    if (a.min_view_angle >= 0.0) {
+      options.reconstruction.integration.height_field.min_view_angle_deg = a.min_view_angle;
+    }
+    if (a.fourier_frequencies == 0) options.train.fourier = {};
+    if (a.fourier_frequencies > 0) options.train.fourier.frequencies = a.fourier_frequencies;
     if (a.samples_per_probe > 0)
       options.dataset.max_contact_samples_per_probe = a.samples_per_probe;
     if (a.edge_exclusion >= 0.0) options.dataset.edge_exclusion_mm = a.edge_exclusion;

@@ -44,8 +44,7 @@ float UniformSigned(std::uint64_t& state) {
 // The Fourier rows of a_0 (recon/mlp.h): out row p = sin(w_j a_i), row P + p = cos(w_j a_i),
 // p = i * frequencies + j. The phase is a float product, as the ONNX graph computes it (a Gemm
 // whose only non-zero weight per phase is w_j), so both give the same bits before the sine. The
-// phases go into one contiguous block first so that Eigen's vectorised sin / cos run over it
-// (a scalar std::sin per feature cost a quarter of the training time).
+// phases go into one contiguous block first so that Eigen's vectorised sin / cos run over it.
 void EncodeFeatures(const FourierFeatures& f, const Eigen::Ref<const Eigen::MatrixXf>& a,
                     Eigen::Ref<Eigen::MatrixXf> out) {
   const int count = f.inputs * f.frequencies;
