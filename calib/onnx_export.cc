@@ -64,6 +64,13 @@ onnx::NodeProto* AddNode(onnx::GraphProto* graph, const std::string& op, const s
   return node;
 }
 
+void AddIntAttribute(onnx::NodeProto* node, const std::string& name, std::int64_t value) {
+  auto* attribute = node->add_attribute();
+  attribute->set_name(name);
+  attribute->set_type(onnx::AttributeProto_AttributeType_INT);
+  attribute->set_i(value);
+}
+
 void AddMetadata(onnx::ModelProto& model, const std::string& key, const std::string& value) {
   auto* prop = model.add_metadata_props();
   prop->set_key(key);
@@ -198,18 +205,12 @@ std::vector<std::uint8_t> ExportMlpToOnnx(const Mlp& mlp, const OnnxExportOption
     onnx::NodeProto* phase =
         AddNode(graph, "Gemm", "fourier.Gemm", {current, "fourier.frequencies", "fourier.zero"},
                 "fourier.phase");
-    auto* trans_b = phase->add_attribute();
-    trans_b->set_name("transB");
-    trans_b->set_type(onnx::AttributeProto_AttributeType_INT);
-    trans_b->set_i(1);
+    AddIntAttribute(phase, "transB", 1);
     AddNode(graph, "Sin", "fourier.Sin", {"fourier.phase"}, "fourier.sin");
     AddNode(graph, "Cos", "fourier.Cos", {"fourier.phase"}, "fourier.cos");
     onnx::NodeProto* concat = AddNode(graph, "Concat", "fourier.Concat",
                                       {current, "fourier.sin", "fourier.cos"}, "fourier.features");
-    auto* axis = concat->add_attribute();
-    axis->set_name("axis");
-    axis->set_type(onnx::AttributeProto_AttributeType_INT);
-    axis->set_i(1);
+    AddIntAttribute(concat, "axis", 1);
     current = "fourier.features";
   }
   for (std::size_t k = 0; k < num_layers; ++k) {
@@ -221,10 +222,7 @@ std::vector<std::uint8_t> ExportMlpToOnnx(const Mlp& mlp, const OnnxExportOption
         (last && options.fold_normalization) ? options.output_name : prefix + ".gemm";
     onnx::NodeProto* gemm = AddNode(graph, "Gemm", prefix + ".Gemm",
                                     {current, prefix + ".weight", prefix + ".bias"}, gemm_out);
-    auto* trans_b = gemm->add_attribute();
-    trans_b->set_name("transB");
-    trans_b->set_type(onnx::AttributeProto_AttributeType_INT);
-    trans_b->set_i(1);
+    AddIntAttribute(gemm, "transB", 1);
     current = gemm_out;
     if (last) break;
     const std::string act_out = prefix + ".act";

@@ -158,7 +158,6 @@ void Shuffle(std::vector<std::uint32_t>& perm, Rng& rng) {
 // Per-thread buffers for one chunk of a mini-batch.
 struct Workspace {
   Eigen::MatrixXf x;                  // [in, chunk] raw inputs
-  Eigen::MatrixXf norm;               // [in, chunk] normalised inputs (Fourier features only)
   Eigen::MatrixXf y;                  // [out, chunk] normalised targets
   std::vector<Eigen::MatrixXf> act;   // act[k]: [sizes[k], chunk]; act[L] = linear output
   std::vector<Eigen::MatrixXf> pre;   // silu only: sigmoid of the hidden pre-activations
@@ -179,14 +178,10 @@ void ChunkGradient(const Mlp& mlp, Workspace& ws, Eigen::Index m, Eigen::Index b
   const Eigen::VectorXf in_inv_scale = mlp.input_scale().cwiseInverse();
   const Eigen::VectorXf& out_mean = mlp.output_mean();
   const Eigen::VectorXf out_inv_scale = mlp.output_scale().cwiseInverse();
-  if (mlp.fourier().Enabled()) {
-    ws.norm.leftCols(m) =
-        ((ws.x.leftCols(m).colwise() - in_mean).array().colwise() * in_inv_scale.array()).matrix();
-    mlp.Encode(ws.norm.leftCols(m), ws.act[0].leftCols(m));
-  } else {
-    ws.act[0].leftCols(m) =
-        ((ws.x.leftCols(m).colwise() - in_mean).array().colwise() * in_inv_scale.array()).matrix();
-  }
+  const Eigen::Index in = mlp.input_size();
+  ws.act[0].topLeftCorner(in, m) =
+      ((ws.x.leftCols(m).colwise() - in_mean).array().colwise() * in_inv_scale.array()).matrix();
+  mlp.Encode(ws.act[0].leftCols(m));
   const auto target =
       ((ws.y.leftCols(m).colwise() - out_mean).array().colwise() * out_inv_scale.array());
   const auto& layers = mlp.layers();
@@ -250,7 +245,6 @@ Workspace MakeWorkspace(const std::vector<int>& sizes, int inputs, Activation ac
   const int widest = *std::max_element(sizes.begin(), sizes.end());
   Workspace ws;
   ws.x.resize(inputs, chunk_max);
-  if (inputs != sizes.front()) ws.norm.resize(inputs, chunk_max);
   ws.y.resize(sizes.back(), chunk_max);
   ws.act.resize(sizes.size());
   for (std::size_t k = 0; k < sizes.size(); ++k) ws.act[k].resize(sizes[k], chunk_max);

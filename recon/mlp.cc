@@ -282,11 +282,7 @@ Eigen::MatrixXf Mlp::Forward(const Eigen::MatrixXf& x) const {
     const Eigen::Index m = std::min(block, n - c0);
     auto a0 = buf_a.topLeftCorner(input_size(), m);
     a0 = ((x.middleCols(c0, m).colwise() - input_mean_).array().colwise() * inv_in_scale).matrix();
-    if (fourier_.Enabled()) {
-      // Encode in place: the normalised rows stay on top, the features go below them.
-      EncodeFeatures(fourier_, buf_a.topLeftCorner(input_size(), m),
-                     buf_a.block(input_size(), 0, fourier_.Width(), m));
-    }
+    Encode(buf_a.topLeftCorner(first_layer_input_size(), m));
     Eigen::MatrixXf* cur = &buf_a;
     Eigen::MatrixXf* next = &buf_b;
     for (std::size_t k = 0; k < layers_.size(); ++k) {
@@ -308,19 +304,14 @@ Eigen::MatrixXf Mlp::Forward(const Eigen::MatrixXf& x) const {
   return y;
 }
 
-void Mlp::Encode(const Eigen::Ref<const Eigen::MatrixXf>& normalized,
-                 Eigen::Ref<Eigen::MatrixXf> out) const {
-  if (normalized.rows() != input_size() || out.rows() != first_layer_input_size() ||
-      out.cols() != normalized.cols()) {
-    throw std::invalid_argument("Mlp::Encode: shapes [" + std::to_string(normalized.rows()) + ", " +
-                                std::to_string(normalized.cols()) + "] -> [" +
-                                std::to_string(out.rows()) + ", " + std::to_string(out.cols()) +
-                                "], expected [" + std::to_string(input_size()) + ", m] -> [" +
-                                std::to_string(first_layer_input_size()) + ", m]");
+void Mlp::Encode(Eigen::Ref<Eigen::MatrixXf> a0) const {
+  if (a0.rows() != first_layer_input_size()) {
+    throw std::invalid_argument("Mlp::Encode: a_0 has " + std::to_string(a0.rows()) +
+                                " rows, the first layer takes " +
+                                std::to_string(first_layer_input_size()));
   }
-  out.topRows(input_size()) = normalized;
   if (fourier_.Enabled()) {
-    EncodeFeatures(fourier_, normalized, out.bottomRows(fourier_.Width()));
+    EncodeFeatures(fourier_, a0.topRows(input_size()), a0.bottomRows(fourier_.Width()));
   }
 }
 

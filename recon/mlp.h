@@ -64,10 +64,10 @@ class Mlp {
   const FourierFeatures& fourier() const { return fourier_; }
   // Rows of a_0, the first layer's input: input_size() + fourier().Width().
   int first_layer_input_size() const { return input_size() + fourier_.Width(); }
-  // a_0 from normalised inputs: `normalized` [input_size, m] -> `out` [first_layer_input_size, m]
-  // (may not alias). std::invalid_argument for wrong shapes.
-  void Encode(const Eigen::Ref<const Eigen::MatrixXf>& normalized,
-              Eigen::Ref<Eigen::MatrixXf> out) const;
+  // Completes a_0 in place: `a0` is [first_layer_input_size, m] with the normalised inputs in its
+  // top input_size() rows; the Fourier rows below them are written (nothing without features).
+  // std::invalid_argument for a wrong row count.
+  void Encode(Eigen::Ref<Eigen::MatrixXf> a0) const;
   std::vector<MlpLayer>& layers() { return layers_; }
   const std::vector<MlpLayer>& layers() const { return layers_; }
   int ParameterCount() const;
