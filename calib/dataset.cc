@@ -15,7 +15,7 @@ namespace gs360 {
 namespace {
 
 constexpr char kMagic[8] = {'G', 'S', '3', '6', '0', 'D', 'S', 'T'};
-constexpr std::uint32_t kVersion = 1;
+constexpr std::uint32_t kVersion = 2;  // 2: the feature count is stored (1: always 5)
 
 [[noreturn]] void Bad(const std::string& field, double value, const std::string& rule) {
   throw std::invalid_argument("DatasetOptions." + field + " must be " + rule + ", got " +
@@ -61,6 +61,7 @@ void DatasetOptions::Check() const {
   if (!(non_contact_fraction >= 0.0 && non_contact_fraction <= 0.9)) {
     Bad("non_contact_fraction", non_contact_fraction, "in [0, 0.9]");
   }
+  if (max_samples < 0) Bad("max_samples", static_cast<double>(max_samples), ">= 0");
   if (min_contact_pixels < 1) Bad("min_contact_pixels", min_contact_pixels, ">= 1");
   if (!(validation_fraction > 0.0 && validation_fraction < 0.5)) {
     Bad("validation_fraction", validation_fraction, "in (0, 0.5)");
@@ -72,19 +73,35 @@ void DatasetOptions::Check() const {
   }
 }
 
+int DatasetOptions::ContactSamplesPerProbe(std::size_t probes) const {
+  if (max_samples == 0 || probes == 0) return max_contact_samples_per_probe;
+  // Non-contact samples come on top: non_contact_fraction of each probe's samples.
+  const double contact_budget = static_cast<double>(max_samples) * (1.0 - non_contact_fraction);
+  const double per_probe = std::floor(contact_budget / static_cast<double>(probes));
+  return static_cast<int>(
+      std::clamp(per_probe, 1.0, static_cast<double>(max_contact_samples_per_probe)));
+}
+
 std::vector<Split> SplitProbes(std::span<const std::int32_t> probes,
                                const DatasetOptions& options) {
   options.Check();
   const std::size_t n = probes.size();
+  // Rank the probes by a hash of (plan index, seed) rather than shuffling the list: a probe's
+  // split then depends on the probe, not on which other probes made it into the list, so one
+  // probe more or less (a pose change that moves one render's contact mask) moves at most one
+  // probe across each boundary instead of redrawing the whole test set.
+  auto key = [&](std::size_t i) {
+    std::uint64_t z = options.seed * 0x9e3779b97f4a7c15ULL ^
+                      (static_cast<std::uint64_t>(static_cast<std::uint32_t>(probes[i])) + 0x5eed);
+    z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ULL;  // splitmix64 finaliser
+    z = (z ^ (z >> 27)) * 0x94d049bb133111ebULL;
+    return z ^ (z >> 31);
+  };
+  std::vector<std::pair<std::uint64_t, std::size_t>> ranked(n);
+  for (std::size_t i = 0; i < n; ++i) ranked[i] = {key(i), i};
+  std::sort(ranked.begin(), ranked.end());
   std::vector<std::size_t> order(n);
-  std::iota(order.begin(), order.end(), 0);
-  std::mt19937_64 rng(options.seed ^ 0x5eed5eedULL);
-  // Fisher-Yates with our own index draw: std::shuffle's use of the engine is not specified
-  // to be portable across standard libraries.
-  for (std::size_t i = n; i > 1; --i) {
-    const std::size_t j = static_cast<std::size_t>(rng() % i);
-    std::swap(order[i - 1], order[j]);
-  }
+  for (std::size_t k = 0; k < n; ++k) order[k] = ranked[k].second;
   std::size_t n_test = static_cast<std::size_t>(std::llround(options.test_fraction * n));
   std::size_t n_val = static_cast<std::size_t>(std::llround(options.validation_fraction * n));
   if (n >= 3) {
@@ -104,7 +121,7 @@ std::vector<Split> SplitProbes(std::span<const std::int32_t> probes,
 
 std::size_t AppendProbeSamples(const cv::Mat& diff, const ProbeRender& render, int plan_index,
                                const DatasetOptions& options, Dataset* out,
-                               const cv::Mat& penetration) {
+                               const cv::Mat& penetration, const cv::Mat& context) {
   if (render.contact_pixels < options.min_contact_pixels || render.roi.empty()) return 0;
   if (diff.type() != CV_32FC3)
     throw std::invalid_argument("AppendProbeSamples: diff must be CV_32FC3");
@@ -112,6 +129,16 @@ std::size_t AppendProbeSamples(const cv::Mat& diff, const ProbeRender& render, i
   if (exclude_edge && (penetration.type() != CV_32F || penetration.size() != render.roi.size())) {
     throw std::invalid_argument(
         "AppendProbeSamples: edge_exclusion_mm > 0 needs the roi's penetration map (CV_32F)");
+  }
+  if (!context.empty() && (context.depth() != CV_32F || context.size() != render.roi.size())) {
+    throw std::invalid_argument(
+        "AppendProbeSamples: context features must be CV_32F of the roi's size");
+  }
+  const int rows = kFeatureCount + context.channels() * !context.empty();
+  if (out->x.cols() > 0 && out->x.rows() != rows) {
+    throw std::invalid_argument("AppendProbeSamples: " + std::to_string(rows) +
+                                " features per sample, the dataset has " +
+                                std::to_string(out->x.rows()));
   }
   const float edge = static_cast<float>(options.edge_exclusion_mm);
   std::vector<cv::Point> contact, other;
@@ -139,18 +166,13 @@ std::size_t AppendProbeSamples(const cv::Mat& diff, const ProbeRender& render, i
 
   const Eigen::Index start = out->x.cols();
   const Eigen::Index count = static_cast<Eigen::Index>(contact.size() + other.size());
-  out->x.conservativeResize(kFeatureCount, start + count);
+  out->x.conservativeResize(rows, start + count);
   out->y.conservativeResize(2, start + count);
   Eigen::Index c = start;
   for (int pass = 0; pass < 2; ++pass) {
     for (const cv::Point& p : pass == 0 ? contact : other) {
       const int u = render.roi.x + p.x, v = render.roi.y + p.y;
-      const cv::Vec3f d = diff.at<cv::Vec3f>(v, u);
-      out->x(0, c) = static_cast<float>(u);
-      out->x(1, c) = static_cast<float>(v);
-      out->x(2, c) = d[2];
-      out->x(3, c) = d[1];
-      out->x(4, c) = d[0];
+      PixelFeatures(diff, context, render.roi.tl(), u, v, out->x.col(c).data());
       out->y(0, c) = pass == 0 ? render.gx.at<float>(p) : 0.0f;
       out->y(1, c) = pass == 0 ? render.gy.at<float>(p) : 0.0f;
       out->probe.push_back(plan_index);
@@ -203,8 +225,10 @@ std::vector<std::uint8_t> Dataset::Serialize() const {
   Put(&b, &kVersion, sizeof(kVersion));
   const std::uint64_t n = static_cast<std::uint64_t>(x.cols());
   const std::uint64_t np = probes.size();
+  const std::uint32_t rows = static_cast<std::uint32_t>(x.rows());
   Put(&b, &n, sizeof(n));
   Put(&b, &np, sizeof(np));
+  Put(&b, &rows, sizeof(rows));
   Put(&b, x.data(), sizeof(float) * x.size());
   Put(&b, y.data(), sizeof(float) * y.size());
   Put(&b, probe.data(), sizeof(std::int32_t) * probe.size());
@@ -229,16 +253,17 @@ Dataset Dataset::Deserialize(std::span<const std::uint8_t> bytes) {
   char magic[8];
   r.Get(magic, 8);
   const auto version = r.Pod<std::uint32_t>();
-  if (version != kVersion) {
+  if (version != 1 && version != kVersion) {
     throw std::runtime_error("dataset artifact version " + std::to_string(version) +
                              " is not supported (expected " + std::to_string(kVersion) + ")");
   }
   const auto n = r.Pod<std::uint64_t>();
   const auto np = r.Pod<std::uint64_t>();
-  if (n > (1ull << 34) || np > (1ull << 31))
+  const std::uint32_t rows = version >= 2 ? r.Pod<std::uint32_t>() : kFeatureCount;
+  if (n > (1ull << 34) || np > (1ull << 31) || rows < kFeatureCount || rows > 64)
     throw std::runtime_error("dataset artifact sizes are absurd");
   Dataset d;
-  d.x.resize(kFeatureCount, static_cast<Eigen::Index>(n));
+  d.x.resize(static_cast<Eigen::Index>(rows), static_cast<Eigen::Index>(n));
   d.y.resize(2, static_cast<Eigen::Index>(n));
   r.Get(d.x.data(), sizeof(float) * d.x.size());
   r.Get(d.y.data(), sizeof(float) * d.y.size());

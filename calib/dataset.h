@@ -8,9 +8,11 @@
 // max_contact_samples_per_probe, a seeded random subset: neighbouring pixels are nearly
 // redundant) plus non-contact pixels of the probe's ROI, about non_contact_fraction of all of
 // the probe's samples (target slopes 0: they teach the model where nothing touches).
-// Probes are split train / validation / test BY PROBE (a seeded shuffle), never by pixel.
+// Probes are split train / validation / test BY PROBE (ranked by a seeded hash of the plan
+// index, so a probe's split does not depend on which other probes are present), never by pixel.
 //
-// The matrices are column-major, one sample per column: x [kFeatureCount, n], y [2, n].
+// The matrices are column-major, one sample per column: x [features, n], y [2, n], where
+// features is kFeatureCount, plus kContextFeatureCount with context features.
 
 #include <Eigen/Core>
 #include <cstdint>
@@ -27,10 +29,15 @@ enum class Split : std::uint8_t { kTrain = 0, kValidation = 1, kTest = 2 };
 
 struct DatasetOptions {
   int max_contact_samples_per_probe = 250;  // >= 1
-  double non_contact_fraction = 0.25;       // [0, 0.9]
-  int min_contact_pixels = 8;        // probes with fewer rendered contact pixels are left out
-  double validation_fraction = 0.1;  // of the probes
-  double test_fraction = 0.1;        // of the probes (held out for the validate stage)
+  // Budget for the whole dataset (contact and non-contact samples; 0 = none): with many probes
+  // the per-probe cap drops to ContactSamplesPerProbe() so that training time stays bounded.
+  // More probes with fewer pixels each beat fewer probes with more (neighbouring pixels are
+  // nearly redundant). The default keeps 2,000 probes whole and 10,000 within the time target.
+  std::int64_t max_samples = 1'200'000;
+  double non_contact_fraction = 0.25;  // [0, 0.9]
+  int min_contact_pixels = 8;          // probes with fewer rendered contact pixels are left out
+  double validation_fraction = 0.1;    // of the probes
+  double test_fraction = 0.1;          // of the probes (held out for the validate stage)
   std::uint64_t seed = 1;
   // Pixels whose rigid penetration along the normal (calib/render.h NormalPenetration) is within
   // this of zero are left out, inside and outside the imprint: a real gel rounds the imprint's
@@ -39,10 +46,13 @@ struct DatasetOptions {
   // prediction toward the mean. 0 keeps every pixel. [0, 2] mm.
   double edge_exclusion_mm = 0.0;
   void Check() const;  // throws std::invalid_argument naming the field and value
+  // The contact-sample cap per probe for a dataset of `probes` probes with contact:
+  // max_contact_samples_per_probe, lowered (not below 1) so that about max_samples samples result.
+  int ContactSamplesPerProbe(std::size_t probes) const;
 };
 
 struct Dataset {
-  Eigen::MatrixXf x;                  // [kFeatureCount, n]
+  Eigen::MatrixXf x;                  // [features, n] (recon/features.h PixelFeatures)
   Eigen::MatrixXf y;                  // [2, n]
   std::vector<std::int32_t> probe;    // per sample: the probe's plan index
   std::vector<std::uint8_t> contact;  // per sample: 1 = contact pixel
@@ -65,13 +75,17 @@ struct Dataset {
 // of samples added (0 when the render has fewer than min_contact_pixels). Deterministic for
 // (options.seed, plan_index). `penetration`: the render roi's NormalPenetration (CV_32F,
 // roi-sized), needed when options.edge_exclusion_mm > 0 (std::invalid_argument if missing or
-// of the wrong size).
+// of the wrong size). `context`: empty, or the render roi's recon/features.h ContextFeatures;
+// every call on one dataset must agree (std::invalid_argument otherwise).
 std::size_t AppendProbeSamples(const cv::Mat& diff, const ProbeRender& render, int plan_index,
                                const DatasetOptions& options, Dataset* out,
-                               const cv::Mat& penetration = cv::Mat());
+                               const cv::Mat& penetration = cv::Mat(),
+                               const cv::Mat& context = cv::Mat());
 
-// Seeded split of plan indices (in the given order) into train / validation / test. Every split
-// gets at least one probe when there are >= 3 probes.
+// Seeded split of plan indices into train / validation / test: the probes ranked by a hash of
+// (plan index, seed), the first test_fraction to test, the next validation_fraction to
+// validation. Independent of the list's order. Every split gets at least one probe when there
+// are >= 3 probes.
 std::vector<Split> SplitProbes(std::span<const std::int32_t> probes, const DatasetOptions& options);
 
 }  // namespace gs360

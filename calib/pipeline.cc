@@ -629,9 +629,15 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
   Dataset dataset;
   std::string dataset_key;
   {
+    // The sample budget becomes a per-probe cap over the probes that will contribute.
+    std::size_t contributing = 0;
+    for (const auto& [index, render] : renders) {
+      contributing += render.contact_pixels >= options.dataset.min_contact_pixels ? 1 : 0;
+    }
+    DatasetOptions d = options.dataset;
+    d.max_contact_samples_per_probe = d.ContactSamplesPerProbe(contributing);
     Hasher h;
-    const DatasetOptions& d = options.dataset;
-    h.Add("dataset/1").Add(render_key).Add(frames_key);
+    h.Add("dataset/2").Add(render_key).Add(frames_key);
     h.AddPod(d.max_contact_samples_per_probe).AddDouble(d.non_contact_fraction);
     h.AddPod(d.min_contact_pixels).AddDouble(d.validation_fraction).AddDouble(d.test_fraction);
     h.AddPod(d.seed);
@@ -660,13 +666,15 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
                                               result.cam_from_sensor * probes[k].ball_sensor,
                                               inputs.ball_radius);
             }
-            AppendProbeSamples(diff, it->second, probes[k].plan_index, options.dataset, &parts[k],
-                               penetration);
+            const cv::Mat context = ContextFeatures(
+                diff, visible, it->second.roi, options.reconstruction.difference.context_sigmas_px);
+            AppendProbeSamples(diff, it->second, probes[k].plan_index, d, &parts[k], penetration,
+                               context);
           });
       Dataset all;
       std::size_t n = 0;
       for (const Dataset& p : parts) n += p.probe.size();
-      all.x.resize(kFeatureCount, static_cast<Eigen::Index>(n));
+      all.x.resize(FeatureCount(options.reconstruction.difference), static_cast<Eigen::Index>(n));
       all.y.resize(2, static_cast<Eigen::Index>(n));
       Eigen::Index c = 0;
       for (std::size_t k = 0; k < parts.size(); ++k) {
@@ -687,6 +695,7 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
       }
       all.probe_split = SplitProbes(all.probes, options.dataset);
       (*metrics)["samples"] = n;
+      (*metrics)["contact_samples_per_probe"] = d.max_contact_samples_per_probe;
       (*metrics)["probes"] = all.probes.size();
       (*metrics)["train_samples"] = all.Count(Split::kTrain);
       (*metrics)["validation_samples"] = all.Count(Split::kValidation);
@@ -858,7 +867,14 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
           bundle.metrics = Json{{"run_id", run_id},
                                 {"validation", result.validation.value("results", Json::object())}};
           const std::vector<std::uint8_t> bytes = WriteModelBundle(result.model_path, bundle);
-          WriteOnnxFile(result.onnx_path, mlp);
+          OnnxExportOptions onnx;
+          for (double sigma : options.reconstruction.difference.context_sigmas_px) {
+            onnx.input_description +=
+                ", then dR/du, dR/dv, dG/du, dG/dv, dB/du, dB/dv (per px) of the change smoothed "
+                "by a Gaussian of sigma " +
+                std::to_string(sigma) + " px";
+          }
+          WriteOnnxFile(result.onnx_path, mlp, onnx);
           const auto existing = db.GetModel(name, version);
           if (!existing) {
             db.PutModel(name, version, bytes, Json{{"file", result.model_path.string()}}.dump(),

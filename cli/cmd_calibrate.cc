@@ -24,8 +24,10 @@ struct CalibrateArgs {
   int max_epochs = 0;
   std::vector<int> hidden;
   int samples_per_probe = 0;
+  std::int64_t max_samples = -1;
   double edge_exclusion = -1.0;
   double smooth_sigma = -1.0;
+  std::vector<double> context_sigmas;
   std::string integration;
   double min_view_angle = -1.0;
   int fourier_frequencies = -1;
@@ -54,10 +56,13 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
   cmd->add_option("--threads", a.threads, "Worker threads")->capture_default_str();
   cmd->add_option("--max-epochs", a.max_epochs, "Training epochs at most (default: the trainer's)");
   cmd->add_option("--hidden", a.hidden,
-                  "MLP hidden layer widths, comma separated (default: 64,64,64)")
+                  "MLP hidden layer widths, comma separated (default: 128,128,128)")
       ->delimiter(',');
   cmd->add_option("--samples-per-probe", a.samples_per_probe,
-                  "Contact pixels sampled per probe for training (default: 250)");
+                  "Contact pixels sampled per probe for training at most (default: 250)");
+  cmd->add_option("--max-samples", a.max_samples,
+                  "Training samples in all at most, lowering the per-probe count for large runs "
+                  "(default: 1200000; 0 = no limit)");
   cmd->add_option("--edge-exclusion", a.edge_exclusion,
                   "Leave out training pixels within this many mm of the rigid imprint's edge, "
                   "where the gel rounds it off (default: the dataset's)");
@@ -70,6 +75,10 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
   cmd->add_option("--fourier", a.fourier_frequencies,
                   "Fourier features of the pixel position: frequencies per coordinate "
                   "(default 4; 0 = raw u, v only)");
+  cmd->add_option("--context-sigmas", a.context_sigmas,
+                  "Scales (px, comma separated, at most 4) of the context features: the colour "
+                  "change's image gradient, fed to the MLP with each pixel's colour (0 = none)")
+      ->delimiter(',');
   cmd->add_option("--smooth-sigma", a.smooth_sigma,
                   "Gaussian smoothing (px) of the colour difference before the MLP (default 1)");
   cmd->add_option("--max-validation-probes", a.max_validation_probes,
@@ -97,6 +106,12 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
       options.reconstruction.integration.method = ParseIntegrationMethod(a.integration);
     }
     if (a.smooth_sigma >= 0.0) options.reconstruction.difference.smooth_sigma_px = a.smooth_sigma;
+    if (!a.context_sigmas.empty()) {
+      options.reconstruction.difference.context_sigmas_px.clear();
+      for (double sigma : a.context_sigmas) {
+        if (sigma > 0.0) options.reconstruction.difference.context_sigmas_px.push_back(sigma);
+      }
+    }
     if (a.min_view_angle >= 0.0) {
       options.reconstruction.integration.height_field.min_view_angle_deg = a.min_view_angle;
     }
@@ -104,6 +119,7 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
     if (a.fourier_frequencies > 0) options.train.fourier.frequencies = a.fourier_frequencies;
     if (a.samples_per_probe > 0)
       options.dataset.max_contact_samples_per_probe = a.samples_per_probe;
+    if (a.max_samples >= 0) options.dataset.max_samples = a.max_samples;
     if (a.edge_exclusion >= 0.0) options.dataset.edge_exclusion_mm = a.edge_exclusion;
     if (a.max_validation_probes > 0) options.validation.max_probes = a.max_validation_probes;
     std::unique_ptr<SimValidationTruth> truth;

@@ -28,6 +28,111 @@ void DifferenceOptions::Check() const {
   if (!(smooth_sigma_px >= 0.0 && smooth_sigma_px <= 10.0)) {
     Bad("DifferenceOptions.smooth_sigma_px", smooth_sigma_px, "in [0, 10]");
   }
+  if (context_sigmas_px.size() > 4) {
+    Bad("DifferenceOptions.context_sigmas_px's size", static_cast<double>(context_sigmas_px.size()),
+        "at most 4");
+  }
+  for (double sigma : context_sigmas_px) {
+    if (!(sigma > 0.0 && sigma <= 20.0))
+      Bad("DifferenceOptions.context_sigmas_px", sigma, "in (0, 20]");
+  }
+}
+
+int FeatureCount(const DifferenceOptions& options) {
+  return kFeatureCount + kContextFeatureCount * static_cast<int>(options.context_sigmas_px.size());
+}
+
+namespace {
+
+// One scale of ContextFeatures, into channels [offset, offset + 6) of `out`.
+void ContextFeaturesAtScale(const cv::Mat& diff, const cv::Mat& valid, const cv::Rect& roi,
+                            double sigma_px, int offset, cv::Mat* out_mat) {
+  const cv::Rect image(0, 0, diff.cols, diff.rows);
+  // Smooth a margin around the roi (plus one pixel for the central differences) so the roi's
+  // border sees the same filter as its inside.
+  const int margin = static_cast<int>(std::ceil(3.0 * sigma_px)) + 1;
+  const cv::Rect big =
+      cv::Rect(roi.x - margin, roi.y - margin, roi.width + 2 * margin, roi.height + 2 * margin) &
+      image;
+  cv::Mat weight;
+  if (valid.empty()) {
+    weight = cv::Mat(big.size(), CV_32F, cv::Scalar::all(1.0));
+  } else {
+    valid(big).convertTo(weight, CV_32F, 1.0 / 255.0);
+    cv::threshold(weight, weight, 0.0, 1.0, cv::THRESH_BINARY);
+  }
+  cv::Mat weighted, smooth, wsum;
+  // diff is already 0 outside `valid`, so blurring it is the numerator of the normalised
+  // convolution.
+  cv::GaussianBlur(diff(big), smooth, cv::Size(), sigma_px, sigma_px, cv::BORDER_REPLICATE);
+  cv::GaussianBlur(weight, wsum, cv::Size(), sigma_px, sigma_px, cv::BORDER_REPLICATE);
+  for (int v = 0; v < smooth.rows; ++v) {
+    const float* ws = wsum.ptr<float>(v);
+    auto* s = smooth.ptr<cv::Vec3f>(v);
+    for (int u = 0; u < smooth.cols; ++u) s[u] = ws[u] > 1e-3f ? s[u] / ws[u] : cv::Vec3f(0, 0, 0);
+  }
+  const int ox = roi.x - big.x, oy = roi.y - big.y;
+  const int channels = out_mat->channels();
+  for (int y = 0; y < roi.height; ++y) {
+    const int sy = y + oy;
+    const int y0 = std::max(sy - 1, 0), y1 = std::min(sy + 1, smooth.rows - 1);
+    float* o = out_mat->ptr<float>(y);
+    for (int x = 0; x < roi.width; ++x) {
+      const int sx = x + ox;
+      const int x0 = std::max(sx - 1, 0), x1 = std::min(sx + 1, smooth.cols - 1);
+      const cv::Vec3f du = (smooth.at<cv::Vec3f>(sy, x1) - smooth.at<cv::Vec3f>(sy, x0)) /
+                           static_cast<float>(std::max(x1 - x0, 1));
+      const cv::Vec3f dv = (smooth.at<cv::Vec3f>(y1, sx) - smooth.at<cv::Vec3f>(y0, sx)) /
+                           static_cast<float>(std::max(y1 - y0, 1));
+      float* px = o + static_cast<std::ptrdiff_t>(x) * channels + offset;
+      for (int c = 0; c < 3; ++c) {  // R, G, B: stored channels 2, 1, 0
+        px[2 * c] = du[2 - c];
+        px[2 * c + 1] = dv[2 - c];
+      }
+    }
+  }
+}
+
+}  // namespace
+
+cv::Mat ContextFeatures(const cv::Mat& diff, const cv::Mat& valid, const cv::Rect& roi,
+                        const std::vector<double>& sigmas_px) {
+  if (diff.type() != CV_32FC3)
+    throw std::invalid_argument("ContextFeatures: diff must be CV_32FC3");
+  if (!valid.empty() && (valid.type() != CV_8U || valid.size() != diff.size())) {
+    throw std::invalid_argument("ContextFeatures: valid mask must be CV_8U of the image size");
+  }
+  const cv::Rect image(0, 0, diff.cols, diff.rows);
+  if ((roi & image) != roi || roi.empty()) {
+    throw std::invalid_argument("ContextFeatures: roi " + std::to_string(roi.x) + "," +
+                                std::to_string(roi.y) + " " + std::to_string(roi.width) + "x" +
+                                std::to_string(roi.height) + " is not inside the image");
+  }
+  for (double sigma : sigmas_px) {
+    if (!(sigma > 0.0 && sigma <= 20.0)) Bad("ContextFeatures sigma_px", sigma, "in (0, 20]");
+  }
+  if (sigmas_px.empty()) return cv::Mat();
+  const int channels = kContextFeatureCount * static_cast<int>(sigmas_px.size());
+  cv::Mat out(roi.size(), CV_32FC(channels), cv::Scalar::all(0));
+  for (std::size_t k = 0; k < sigmas_px.size(); ++k) {
+    ContextFeaturesAtScale(diff, valid, roi, sigmas_px[k],
+                           kContextFeatureCount * static_cast<int>(k), &out);
+  }
+  return out;
+}
+
+void PixelFeatures(const cv::Mat& diff, const cv::Mat& context, cv::Point roi_origin, int u, int v,
+                   float* out) {
+  const cv::Vec3f f = diff.at<cv::Vec3f>(v, u);
+  out[0] = static_cast<float>(u);
+  out[1] = static_cast<float>(v);
+  out[2] = f[2];  // R
+  out[3] = f[1];  // G
+  out[4] = f[0];  // B
+  if (context.empty()) return;
+  const float* c = context.ptr<float>(v - roi_origin.y) +
+                   static_cast<std::ptrdiff_t>(u - roi_origin.x) * context.channels();
+  for (int k = 0; k < context.channels(); ++k) out[kFeatureCount + k] = c[k];
 }
 
 void ContactDetectionOptions::Check() const {

@@ -12,13 +12,20 @@
 // green) from dividing noise by nothing.
 //
 // The MLP's input for pixel (u, v) is (u, v, f_R, f_G, f_B): kFeatureCount = 5, in that order.
+// With DifferenceOptions::context_sigmas_px, six context features per scale follow
+// (FeatureCount()): the image gradient of f smoothed at that scale,
+// (df_R/du, df_R/dv, df_G/du, df_G/dv, df_B/du, df_B/dv), scales in the order given.
+// Why: near the sensor's tip the LEDs light the gel symmetrically, so a pixel's colour says how
+// much the gel tilts but hardly which way; which way the colour change grows across the image
+// (outward from an imprint's centre) says it.
 
 #include <opencv2/core/mat.hpp>
 #include <vector>
 
 namespace gs360 {
 
-constexpr int kFeatureCount = 5;  // u, v, f_R, f_G, f_B
+constexpr int kFeatureCount = 5;         // u, v, f_R, f_G, f_B
+constexpr int kContextFeatureCount = 6;  // per scale: d/du, d/dv of f_R, f_G, f_B
 
 struct DifferenceOptions {
   double floor_dn = 30.0;               // added to the denominator (DN, > 0)
@@ -29,6 +36,11 @@ struct DifferenceOptions {
   // pull their neighbours toward 0); 0 = none. Shot and read noise are per pixel, the imprint's
   // colour changes spread over many pixels.
   double smooth_sigma_px = 1.0;
+  // Scales (px) of the context features (the gradient of f smoothed by a Gaussian of each sigma,
+  // over valid pixels); empty = no context features. Each in (0, 20], at most 4. Three octaves
+  // from the imprint's edge to its size: on the 2,000-probe cylinder they cut the MLP's
+  // validation loss 0.062 -> 0.021 and the mean depth error 0.060 -> 0.037 mm (64 wide).
+  std::vector<double> context_sigmas_px = {1.5, 4.0, 10.0};
   // Throws std::invalid_argument naming the field and its value.
   void Check() const;
 };
@@ -38,6 +50,25 @@ struct DifferenceOptions {
 // std::invalid_argument for mismatched inputs.
 cv::Mat NormalizedDifference(const cv::Mat& frame, const cv::Mat& reference, const cv::Mat& valid,
                              const DifferenceOptions& options = {}, cv::Vec3d* gain_out = nullptr);
+
+// The MLP's input size for these options: kFeatureCount + kContextFeatureCount per context scale.
+int FeatureCount(const DifferenceOptions& options);
+
+// Context features over `roi` (inside the image): CV_32FC(6 * sigmas_px.size()), roi-sized; per
+// scale, the central difference of f smoothed by a Gaussian of that sigma (normalised
+// convolution over `valid`, so the fins and the image circle's edge do not read as a change), in
+// units of f per pixel, channel order as documented above (R first). diff: CV_32FC3 (B G R);
+// valid: empty or CV_8U of the image size. Reads the image within about 3 sigma of the roi.
+// Empty sigmas: an empty Mat. Throws std::invalid_argument for mismatched inputs or a sigma
+// outside (0, 20].
+cv::Mat ContextFeatures(const cv::Mat& diff, const cv::Mat& valid, const cv::Rect& roi,
+                        const std::vector<double>& sigmas_px);
+
+// Writes pixel (u, v)'s MLP input to out[0 .. kFeatureCount + context.channels()): u, v, f_R,
+// f_G, f_B, then the context features. context: empty or ContextFeatures() of a roi that holds
+// (u, v), whose top-left corner is `roi_origin`.
+void PixelFeatures(const cv::Mat& diff, const cv::Mat& context, cv::Point roi_origin, int u, int v,
+                   float* out);
 
 struct ContactDetectionOptions {
   double blur_sigma_px = 1.5;   // smoothing of the difference magnitude

@@ -74,7 +74,8 @@ Json ReconstructionOptionsToJson(const ReconstructionOptions& o) {
         {"compensate_gain", o.difference.compensate_gain},
         {"gain_min_reference_dn", o.difference.gain_min_reference_dn},
         {"gain_stride", o.difference.gain_stride},
-        {"smooth_sigma_px", o.difference.smooth_sigma_px}}},
+        {"smooth_sigma_px", o.difference.smooth_sigma_px},
+        {"context_sigmas_px", o.difference.context_sigmas_px}}},
       {"detection",
        {{"blur_sigma_px", o.detection.blur_sigma_px},
         {"threshold", o.detection.threshold},
@@ -108,6 +109,7 @@ ReconstructionOptions ReconstructionOptionsFromJson(const Json& json, const std:
     r.Read("gain_min_reference_dn", &o.difference.gain_min_reference_dn);
     r.Read("gain_stride", &o.difference.gain_stride);
     r.Read("smooth_sigma_px", &o.difference.smooth_sigma_px);
+    r.Read("context_sigmas_px", &o.difference.context_sigmas_px);
     r.Finish();
   }
   if (const Json* j = root.Child("detection")) {
@@ -177,10 +179,12 @@ Reconstructor::Reconstructor(std::shared_ptr<const SurfaceMap> map, const Fishey
                                 std::to_string(map_->width()) + "x" +
                                 std::to_string(map_->height()));
   }
-  if (mlp_.input_size() != kFeatureCount || mlp_.output_size() != 2) {
-    throw std::invalid_argument("Reconstructor: the MLP maps " + std::to_string(mlp_.input_size()) +
-                                " -> " + std::to_string(mlp_.output_size()) + ", expected " +
-                                std::to_string(kFeatureCount) + " -> 2");
+  const int features = FeatureCount(options_.difference);
+  if (mlp_.input_size() != features || mlp_.output_size() != 2) {
+    throw std::invalid_argument(
+        "Reconstructor: the MLP maps " + std::to_string(mlp_.input_size()) + " -> " +
+        std::to_string(mlp_.output_size()) + ", expected " + std::to_string(features) + " -> 2 (" +
+        std::to_string(options_.difference.context_sigmas_px.size()) + " context scales)");
   }
   visible_ = map_->VisibleMask();
 }
@@ -200,15 +204,12 @@ cv::Mat Reconstructor::PredictSlopes(const cv::Mat& diff, const cv::Rect& roi) c
     }
   }
   if (pixels.empty()) return slopes;
-  Eigen::MatrixXf x(kFeatureCount, static_cast<Eigen::Index>(pixels.size()));
+  const cv::Mat context =
+      ContextFeatures(diff, visible_, roi, options_.difference.context_sigmas_px);
+  Eigen::MatrixXf x(FeatureCount(options_.difference), static_cast<Eigen::Index>(pixels.size()));
   for (std::size_t i = 0; i < pixels.size(); ++i) {
-    const cv::Vec3f f = diff.at<cv::Vec3f>(pixels[i]);
-    const auto c = static_cast<Eigen::Index>(i);
-    x(0, c) = static_cast<float>(pixels[i].x);
-    x(1, c) = static_cast<float>(pixels[i].y);
-    x(2, c) = f[2];  // R
-    x(3, c) = f[1];  // G
-    x(4, c) = f[0];  // B
+    PixelFeatures(diff, context, roi.tl(), pixels[i].x, pixels[i].y,
+                  x.col(static_cast<Eigen::Index>(i)).data());
   }
   const Eigen::MatrixXf y = mlp_.Forward(x);
   for (std::size_t i = 0; i < pixels.size(); ++i) {

@@ -1,9 +1,11 @@
 #include <catch2/catch.hpp>
 
 #include <cmath>
+#include <cstring>
 #include <set>
 
 #include "calib/dataset.h"
+#include "geometry/hash.h"
 #include "recon/features.h"
 
 using namespace gs360;
@@ -83,6 +85,18 @@ TEST_CASE("dataset: the split is by probe, seeded, with every split non-empty",
   CHECK(counts[2] == 20);
   o.seed = 2;
   CHECK(SplitProbes(probes, o) != a);
+  // A probe's split depends on the probe, not on its neighbours in the list: dropping one
+  // probe (a pose change that empties one render) moves at most one probe per boundary, and
+  // the order of the list does not matter at all.
+  std::vector<std::int32_t> fewer = probes;
+  fewer.erase(fewer.begin() + 17);
+  const auto c = SplitProbes(fewer, DatasetOptions{});
+  int moved = 0;
+  for (std::size_t i = 0; i < fewer.size(); ++i) moved += c[i] != a[i < 17 ? i : i + 1];
+  CHECK(moved <= 2);
+  std::vector<std::int32_t> reversed(probes.rbegin(), probes.rend());
+  const auto r = SplitProbes(reversed, DatasetOptions{});
+  for (std::size_t i = 0; i < probes.size(); ++i) CHECK(r[probes.size() - 1 - i] == a[i]);
   const std::vector<std::int32_t> three = {5, 6, 7};
   const auto s3 = SplitProbes(three, DatasetOptions{});
   CHECK(std::set<Split>(s3.begin(), s3.end()).size() == 3);
@@ -153,4 +167,68 @@ TEST_CASE("dataset: pixels near the rigid imprint's edge are left out when asked
   CHECK_THROWS_AS(AppendProbeSamples(diff, r, 7, o, &e), std::invalid_argument);
   o.edge_exclusion_mm = 3.0;
   CHECK_THROWS_WITH(o.Check(), Catch::Contains("edge_exclusion_mm"));
+}
+
+TEST_CASE("dataset: context features follow the pixel's colour, and survive the round trip",
+          "[calib][dataset]") {
+  cv::Mat diff(240, 320, CV_32FC3);
+  for (int v = 0; v < diff.rows; ++v) {
+    for (int u = 0; u < diff.cols; ++u) {
+      diff.at<cv::Vec3f>(v, u) = cv::Vec3f(0.001f * u, 0.002f * v, 0.003f * (u + v));
+    }
+  }
+  const ProbeRender r = DiscRender(9);
+  const cv::Mat context = ContextFeatures(diff, cv::Mat(), r.roi, {2.0});
+  Dataset d;
+  REQUIRE(AppendProbeSamples(diff, r, 7, DatasetOptions{}, &d, cv::Mat(), context) > 0);
+  REQUIRE(d.x.rows() == kFeatureCount + kContextFeatureCount);
+  for (Eigen::Index c = 0; c < d.x.cols(); ++c) {
+    const int u = static_cast<int>(d.x(0, c)), v = static_cast<int>(d.x(1, c));
+    const float* f = context.ptr<float>(v - r.roi.y) + (u - r.roi.x) * context.channels();
+    for (int k = 0; k < kContextFeatureCount; ++k) CHECK(d.x(kFeatureCount + k, c) == f[k]);
+    CHECK(d.x(5, c) == Approx(0.003).margin(1e-5));  // dR/du
+    CHECK(d.x(8, c) == Approx(0.002).margin(1e-5));  // dG/dv
+  }
+  // One dataset, one feature layout.
+  CHECK_THROWS_WITH(AppendProbeSamples(diff, r, 8, DatasetOptions{}, &d),
+                    Catch::Contains("features per sample"));
+  CHECK_THROWS_WITH(
+      AppendProbeSamples(diff, r, 8, DatasetOptions{}, &d, cv::Mat(), cv::Mat(3, 3, CV_32FC(6))),
+      Catch::Contains("roi's size"));
+  d.probes = {7};
+  d.probe_split = {Split::kTrain};
+  const Dataset e = Dataset::Deserialize(d.Serialize());
+  CHECK(e.x == d.x);
+
+  // A version-1 artifact (before the feature count was stored: always 5 rows) still loads.
+  Dataset plain;
+  AppendProbeSamples(diff, r, 7, DatasetOptions{}, &plain);
+  plain.probes = {7};
+  plain.probe_split = {Split::kTrain};
+  std::vector<std::uint8_t> v1 = plain.Serialize();
+  v1.resize(v1.size() - 8);                    // drop the checksum
+  v1.erase(v1.begin() + 28, v1.begin() + 32);  // magic 8, version 4, n 8, np 8, then rows
+  const std::uint32_t one = 1;
+  std::memcpy(v1.data() + 8, &one, 4);
+  const std::uint64_t sum = Hasher().Add(v1.data(), v1.size()).Digest();
+  v1.insert(v1.end(), reinterpret_cast<const std::uint8_t*>(&sum),
+            reinterpret_cast<const std::uint8_t*>(&sum) + 8);
+  const Dataset old = Dataset::Deserialize(v1);
+  CHECK(old.x == plain.x);
+  CHECK(old.probe == plain.probe);
+}
+
+TEST_CASE("dataset: the sample budget lowers the per-probe cap for large runs only",
+          "[calib][dataset]") {
+  DatasetOptions o;
+  o.max_contact_samples_per_probe = 250;
+  o.non_contact_fraction = 0.25;
+  o.max_samples = 1'200'000;
+  CHECK(o.ContactSamplesPerProbe(2000) == 250);     // 2,000 probes: untouched
+  CHECK(o.ContactSamplesPerProbe(10000) == 90);     // 1.2M * 0.75 / 10,000
+  CHECK(o.ContactSamplesPerProbe(100000000) == 1);  // never below one
+  o.max_samples = 0;
+  CHECK(o.ContactSamplesPerProbe(10000) == 250);
+  o.max_samples = -1;
+  CHECK_THROWS_WITH(o.Check(), Catch::Contains("max_samples"));
 }

@@ -119,3 +119,75 @@ TEST_CASE("normalised difference smoothing lowers pixel noise and ignores masked
   CHECK(c.at<cv::Vec3f>(50, 50)[0] == Approx(30.0 / 130.0).epsilon(1e-4));
   CHECK(c.at<cv::Vec3f>(50, 49)[0] == 0.0f);
 }
+
+TEST_CASE("context features: the smoothed change's gradient, per channel and scale",
+          "[recon][features]") {
+  // A linear ramp in R (stored channel 2) along u, in G along v, B constant: the gradient of
+  // the smoothed change is the ramp's slope at every scale (a Gaussian keeps a linear function).
+  cv::Mat diff(80, 100, CV_32FC3);
+  for (int v = 0; v < diff.rows; ++v) {
+    for (int u = 0; u < diff.cols; ++u) {
+      diff.at<cv::Vec3f>(v, u) = cv::Vec3f(0.2f, 0.01f * v, 0.02f * u);
+    }
+  }
+  const cv::Rect roi(30, 20, 40, 30);
+  const cv::Mat c = gs360::ContextFeatures(diff, cv::Mat(), roi, {1.5, 4.0});
+  REQUIRE(c.size() == roi.size());
+  REQUIRE(c.channels() == 2 * gs360::kContextFeatureCount);
+  for (const cv::Point p : {cv::Point(0, 0), cv::Point(20, 15), cv::Point(39, 29)}) {
+    const float* f = c.ptr<float>(p.y) + p.x * c.channels();
+    for (int scale = 0; scale < 2; ++scale) {
+      const float* s = f + 6 * scale;
+      CHECK(s[0] == Approx(0.02).margin(1e-5));  // dR/du
+      CHECK(s[1] == Approx(0.0).margin(1e-5));   // dR/dv
+      CHECK(s[2] == Approx(0.0).margin(1e-5));   // dG/du
+      CHECK(s[3] == Approx(0.01).margin(1e-5));  // dG/dv
+      CHECK(s[4] == Approx(0.0).margin(1e-5));   // dB/du
+      CHECK(s[5] == Approx(0.0).margin(1e-5));   // dB/dv
+    }
+  }
+  // PixelFeatures lays out u, v, R, G, B, then the context of the roi pixel.
+  float x[5 + 12];
+  gs360::PixelFeatures(diff, c, roi.tl(), 50, 35, x);
+  CHECK(x[0] == 50.0f);
+  CHECK(x[1] == 35.0f);
+  CHECK(x[2] == Approx(1.0f));   // R = 0.02 * 50
+  CHECK(x[3] == Approx(0.35f));  // G = 0.01 * 35
+  CHECK(x[4] == Approx(0.2f));
+  CHECK(x[5] == Approx(0.02).margin(1e-5));
+  CHECK(x[8] == Approx(0.01).margin(1e-5));
+  DifferenceOptions o;
+  CHECK(gs360::FeatureCount(o) == 5 + 3 * 6);  // default: three scales
+  o.context_sigmas_px.clear();
+  CHECK(gs360::FeatureCount(o) == 5);
+  o.context_sigmas_px = {1.5, 4.0};
+  CHECK(gs360::FeatureCount(o) == 17);
+  CHECK(gs360::ContextFeatures(diff, cv::Mat(), roi, {}).empty());
+}
+
+TEST_CASE("context features: a masked fin reads as no change, bad input is refused",
+          "[recon][features]") {
+  // A uniform change with a masked band (diff is 0 there, as NormalizedDifference leaves it):
+  // normalised convolution keeps the gradient 0 right next to the band instead of reading the
+  // band's zeros as an edge.
+  cv::Mat diff(60, 60, CV_32FC3, cv::Scalar::all(0.3));
+  cv::Mat valid(diff.size(), CV_8U, cv::Scalar(255));
+  valid(cv::Rect(28, 0, 4, 60)).setTo(0);
+  diff.setTo(cv::Scalar::all(0), valid == 0);
+  const cv::Rect roi(10, 10, 40, 40);
+  const cv::Mat c = gs360::ContextFeatures(diff, valid, roi, {3.0});
+  const cv::Mat unmasked = gs360::ContextFeatures(diff, cv::Mat(), roi, {3.0});
+  CHECK(cv::norm(c.reshape(1), cv::NORM_INF) < 1e-4);
+  CHECK(cv::norm(unmasked.reshape(1), cv::NORM_INF) >
+        0.01);  // without the mask the band is an edge
+  CHECK_THROWS_WITH(gs360::ContextFeatures(diff, valid, cv::Rect(50, 50, 20, 20), {3.0}),
+                    Catch::Contains("not inside the image"));
+  CHECK_THROWS_WITH(gs360::ContextFeatures(diff, valid, roi, {0.0}), Catch::Contains("sigma"));
+  CHECK_THROWS_AS(gs360::ContextFeatures(cv::Mat(60, 60, CV_8UC3), valid, roi, {3.0}),
+                  std::invalid_argument);
+  DifferenceOptions o;
+  o.context_sigmas_px = {25.0};
+  CHECK_THROWS_WITH(o.Check(), Catch::Contains("context_sigmas_px"));
+  o.context_sigmas_px = {1, 2, 3, 4, 5};
+  CHECK_THROWS_WITH(o.Check(), Catch::Contains("at most 4"));
+}

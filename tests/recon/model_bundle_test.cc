@@ -4,6 +4,7 @@
 #include <fstream>
 
 #include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "geometry/shapes.h"
 #include "recon/model_bundle.h"
@@ -28,6 +29,7 @@ ModelBundle SmallBundle() {
   b.reference = cv::Mat(120, 160, CV_8UC3, cv::Scalar(70, 110, 150));
   b.mlp = Mlp({5, 8, 2}, Activation::kTanh, 3);
   b.reconstruction.integration.method = IntegrationMethod::kPoisson;
+  b.reconstruction.difference.context_sigmas_px.clear();  // the 5-input MLP above
   b.metrics = {{"mean_mm", 0.021}};
   return b;
 }
@@ -90,4 +92,24 @@ TEST_CASE("model bundle: files are written atomically and read back, and build a
   CHECK(r.Reconstruct(c.reference).regions.empty());
   CHECK_THROWS_WITH(ReadModelBundle(dir / "missing.gs360model"), Catch::Contains("missing"));
   std::filesystem::remove_all(dir);
+}
+
+TEST_CASE("model bundle: context scales travel with the model, and must match its MLP",
+          "[recon][bundle]") {
+  ModelBundle b = SmallBundle();
+  b.reconstruction.difference.context_sigmas_px = {1.5, 4.0};
+  b.mlp = Mlp({FeatureCount(b.reconstruction.difference), 8, 2}, Activation::kTanh, 3);
+  const ModelBundle c = DeserializeModelBundle(SerializeModelBundle(b), "memory");
+  CHECK(c.reconstruction.difference.context_sigmas_px == std::vector<double>{1.5, 4.0});
+  const Reconstructor r = c.MakeReconstructor(1);
+  // A frame with a bright spot goes through the 17-input MLP.
+  cv::Mat frame = c.reference.clone();
+  cv::circle(frame, cv::Point(80, 40), 6, cv::Scalar(120, 160, 200), -1);
+  const FrameReconstruction rec = r.Reconstruct(frame);
+  CHECK_FALSE(rec.regions.empty());
+  // The options say 17 inputs, the MLP takes 5: refused, naming both.
+  ModelBundle wrong = SmallBundle();
+  wrong.reconstruction.difference.context_sigmas_px = {2.0};
+  CHECK_THROWS_WITH(wrong.MakeReconstructor(1),
+                    Catch::Contains("maps 5 -> 2") && Catch::Contains("expected 11"));
 }
