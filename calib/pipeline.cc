@@ -593,7 +593,7 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
   std::string render_key;
   {
     Hasher h;
-    h.Add("render/1").Add(map_key).Add(frames_key);
+    h.Add("render/2").Add(map_key).Add(frames_key);
     h.AddDouble(options.render.margin_px).AddDouble(options.render.max_slope_deg);
     render_key = h.Hex();
     const auto blob = runner.Run("render", render_key, [&](Json* metrics) {
@@ -770,7 +770,7 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
   {
     Hasher h;
     const ValidationOptions& vo = options.validation;
-    h.Add("validate/1").Add(train_key).Add(map_key).Add(dataset_key);
+    h.Add("validate/2").Add(train_key).Add(map_key).Add(dataset_key);
     h.Add(ReconstructionOptionsToJson(options.reconstruction).dump());
     h.AddPod(vo.max_probes).AddDouble(vo.fin_near_mm).AddPod(vo.examples);
     h.Add(truth != nullptr ? truth->Describe() : std::string("no truth"));

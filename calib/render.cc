@@ -171,7 +171,16 @@ ProbeRender RenderProbe(const SurfaceMap& map, const FisheyeCamera& camera,
       ++out.contact_pixels;
       sum_u += u;
       sum_v += v;
-      out.max_indentation_mm = std::max(out.max_indentation_mm, (rho0 - t_b) * std::abs(d.dot(n0)));
+      // The imprint's depth along the gel's own normal at this pixel's surface point, where x0
+      // is inside the ball: how far x0 must move along -n0 to leave it (NormalPenetration). Its
+      // maximum is the press depth on any surface shape; (rho0 - t_b) |d.n0| is that only on a
+      // flat one.
+      const Eigen::Vector3d q = map.point0(u, v) - c;
+      if (q.squaredNorm() <= r * r) {
+        const double qn = q.dot(n0);
+        const double depth = qn + std::sqrt(std::max(qn * qn - q.squaredNorm() + r * r, 0.0));
+        out.max_indentation_mm = std::max(out.max_indentation_mm, depth);
+      }
     }
   }
   if (out.contact_pixels > 0) {

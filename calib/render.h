@@ -38,7 +38,9 @@ struct ProbeRender {
   cv::Mat gx, gy;   // CV_32F, roi-sized: slopes (0 outside contact)
   cv::Mat rho;      // CV_64F, roi-sized: mm along the ray; NaN where not visible
   int contact_pixels = 0;
-  double max_indentation_mm = 0.0;  // max over contact of (rho0 - rho) |d.n0|, ~ the press depth
+  // Max over contact pixels of the rigid imprint's depth along the gel's normal at the pixel's
+  // undeformed point (NormalPenetration there): the press depth, sampled at the pixels.
+  double max_indentation_mm = 0.0;
   // Centroid (u, v) of the contact pixels, or of nothing (NaN) when there is no contact.
   Eigen::Vector2d contact_centroid =
       Eigen::Vector2d::Constant(std::numeric_limits<double>::quiet_NaN());

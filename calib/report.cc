@@ -461,9 +461,10 @@ std::string ExamplesSection(const std::vector<ValidationExample>& examples) {
         << "<figcaption>" << Escape(caption) << "</figcaption></figure>\n";
     };
     figure(ImgTag(ex.frame_roi, "frame"), "frame (crop)");
+    const std::string recon_caption = "reconstruction (" + ex.recon_method + ")";
     const std::pair<const cv::Mat*, const char*> maps[] = {
         {&ex.truth_depth, "truth depth (rigid render)"},
-        {&ex.recon_depth, "reconstruction (discontinuity-aware)"},
+        {&ex.recon_depth, recon_caption.c_str()},
         {&ex.poisson_depth, "plain Poisson"},
         {&ex.physical_depth, "|error| vs physical truth"}};
     for (const auto& [map, caption] : maps) {

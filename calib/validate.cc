@@ -271,6 +271,7 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
           !roi.empty()) {
         ValidationExample ex;
         ex.plan_index = held_out[k];
+        ex.recon_method = kMethods[default_index];
         const cv::Rect box = roi | render.roi;
         const cv::Rect clipped = box & cv::Rect(0, 0, probe.frame.cols, probe.frame.rows);
         ex.frame_roi = probe.frame(clipped).clone();

@@ -75,11 +75,12 @@ struct ValidationProbe {
 
 struct ValidationExample {
   int plan_index = 0;
-  cv::Mat frame_roi;       // CV_8UC3 crop of the press frame
-  cv::Mat truth_depth;     // CV_64F indentation (mm) of the rigid render in the roi
-  cv::Mat recon_depth;     // CV_64F indentation (mm), discontinuity-aware
-  cv::Mat poisson_depth;   // CV_64F indentation (mm), plain Poisson
-  cv::Mat physical_depth;  // CV_64F |error| (mm) against the physical truth (empty without one)
+  cv::Mat frame_roi;         // CV_8UC3 crop of the press frame
+  cv::Mat truth_depth;       // CV_64F indentation (mm) of the rigid render in the roi
+  cv::Mat recon_depth;       // CV_64F indentation (mm), the model's default integrator
+  std::string recon_method;  // that integrator's name (heightfield, discontinuity, poisson)
+  cv::Mat poisson_depth;     // CV_64F indentation (mm), plain Poisson
+  cv::Mat physical_depth;    // CV_64F |error| (mm) against the physical truth (empty without one)
 };
 
 struct ValidationResult {

@@ -542,4 +542,37 @@ cv::Mat IndentationFromRho(const SurfaceMap& map, const cv::Rect& roi, const cv:
   return out;
 }
 
+cv::Mat NormalIndentation(const SurfaceMap& map, const FisheyeCamera& camera, const cv::Rect& roi,
+                          const cv::Mat& rho) {
+  if (rho.type() != CV_64F || rho.size() != roi.size()) {
+    throw std::invalid_argument("NormalIndentation: rho must be CV_64F of the roi's size");
+  }
+  constexpr int kSteps = 4;  // the foot moves by about h tan(view angle); 2-3 steps settle it
+  cv::Mat out(roi.size(), CV_64F, cv::Scalar::all(kNaN));
+  for (int y = 0; y < roi.height; ++y) {
+    for (int x = 0; x < roi.width; ++x) {
+      int u = roi.x + x, v = roi.y + y;
+      const double r = rho.at<double>(y, x);
+      if (!map.visible(u, v) || !std::isfinite(r)) continue;
+      const Eigen::Vector3d p = r * map.ray(u, v);
+      double h = (map.point0(u, v) - p).dot(map.normal0(u, v));
+      for (int step = 0; step < kSteps; ++step) {
+        const Eigen::Vector3d foot = p + h * map.normal0(u, v);
+        const auto uv = camera.CamToPixel(foot);
+        if (!uv) break;
+        const int nu = static_cast<int>(std::lround(uv->x()));
+        const int nv = static_cast<int>(std::lround(uv->y()));
+        if (nu < 0 || nv < 0 || nu >= map.width() || nv >= map.height() || !map.visible(nu, nv)) {
+          break;
+        }
+        if (nu == u && nv == v) break;  // settled
+        u = nu, v = nv;
+        h = (map.point0(u, v) - p).dot(map.normal0(u, v));
+      }
+      out.at<double>(y, x) = h;
+    }
+  }
+  return out;
+}
+
 }  // namespace gs360

@@ -280,7 +280,7 @@ RegionReconstruction Reconstructor::IntegrateSlopes(const cv::Mat& slopes,
     out.rho = IntegrateLogDepth(*map_, grads, along_rays).rho;
   }
   out.integration_seconds = Seconds(t0);
-  out.indentation = IndentationFromRho(*map_, roi, out.rho);
+  out.indentation = NormalIndentation(*map_, camera_, roi, out.rho);
   for (int y = 0; y < roi.height; ++y) {
     for (int x = 0; x < roi.width; ++x) {
       const double depth = out.indentation.at<double>(y, x);

@@ -11,8 +11,9 @@
 // Frames without contact cost one difference and a threshold.
 //
 // Outputs (per region, roi-sized, row = v): rho (mm along the pixel's unit ray from the camera
-// centre), indentation = (rho0 - rho) |d.n0| (mm, + into the gel: the depth of the imprint
-// measured along the undeformed surface's normal, approximately), normals in the camera frame.
+// centre), indentation (mm, + into the gel: how far the gel moved along its own undeformed
+// normal to reach the reconstructed point, recon/integration.h NormalIndentation), normals in
+// the camera frame.
 // Points are in the SENSOR frame (cam_from_sensor of the model), mm.
 //
 // Thread safety: Reconstruct is const and may run on several threads at once.
