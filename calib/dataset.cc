@@ -134,7 +134,7 @@ std::size_t AppendProbeSamples(const cv::Mat& diff, const ProbeRender& render, i
     throw std::invalid_argument(
         "AppendProbeSamples: context features must be CV_32F of the roi's size");
   }
-  const int rows = kFeatureCount + context.channels() * !context.empty();
+  const int rows = kFeatureCount + (context.empty() ? 0 : context.channels());
   if (out->x.cols() > 0 && out->x.rows() != rows) {
     throw std::invalid_argument("AppendProbeSamples: " + std::to_string(rows) +
                                 " features per sample, the dataset has " +

@@ -59,7 +59,7 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
                   "MLP hidden layer widths, comma separated (default: 128,128,128)")
       ->delimiter(',');
   cmd->add_option("--samples-per-probe", a.samples_per_probe,
-                  "Contact pixels sampled per probe for training at most (default: 250)");
+                  "Contact pixels sampled per probe for training at most (default: 500)");
   cmd->add_option("--max-samples", a.max_samples,
                   "Training samples in all at most, lowering the per-probe count for large runs "
                   "(default: 1200000; 0 = no limit)");

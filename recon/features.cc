@@ -61,7 +61,7 @@ void ContextFeaturesAtScale(const cv::Mat& diff, const cv::Mat& valid, const cv:
     valid(big).convertTo(weight, CV_32F, 1.0 / 255.0);
     cv::threshold(weight, weight, 0.0, 1.0, cv::THRESH_BINARY);
   }
-  cv::Mat weighted, smooth, wsum;
+  cv::Mat smooth, wsum;
   // diff is already 0 outside `valid`, so blurring it is the numerator of the normalised
   // convolution.
   cv::GaussianBlur(diff(big), smooth, cv::Size(), sigma_px, sigma_px, cv::BORDER_REPLICATE);
