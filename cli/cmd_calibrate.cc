@@ -77,7 +77,8 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
                   "(default 4; 0 = raw u, v only)");
   cmd->add_option("--context-sigmas", a.context_sigmas,
                   "Scales (px, comma separated, at most 4) of the context features: the colour "
-                  "change's image gradient, fed to the MLP with each pixel's colour (0 = none)")
+                  "change's image gradient, fed to the MLP with each pixel's colour (default: "
+                  "1.5,4,10; 0 = none)")
       ->delimiter(',');
   cmd->add_option("--smooth-sigma", a.smooth_sigma,
                   "Gaussian smoothing (px) of the colour difference before the MLP (default 1)");

@@ -109,6 +109,8 @@ ReconstructionOptions ReconstructionOptionsFromJson(const Json& json, const std:
     r.Read("gain_min_reference_dn", &o.difference.gain_min_reference_dn);
     r.Read("gain_stride", &o.difference.gain_stride);
     r.Read("smooth_sigma_px", &o.difference.smooth_sigma_px);
+    // Absent: a model from before the context features (its MLP takes 5 inputs).
+    if (!j->contains("context_sigmas_px")) o.difference.context_sigmas_px.clear();
     r.Read("context_sigmas_px", &o.difference.context_sigmas_px);
     r.Finish();
   }

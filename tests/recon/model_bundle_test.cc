@@ -3,6 +3,7 @@
 #include <filesystem>
 #include <fstream>
 
+#include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
 
@@ -107,7 +108,14 @@ TEST_CASE("model bundle: context scales travel with the model, and must match it
   cv::circle(frame, cv::Point(80, 40), 6, cv::Scalar(120, 160, 200), -1);
   const FrameReconstruction rec = r.Reconstruct(frame);
   CHECK_FALSE(rec.regions.empty());
-  // The options say 17 inputs, the MLP takes 5: refused, naming both.
+  // A model written before the context features has no context_sigmas_px: it means none, so
+  // its 5-input MLP still loads and runs (the default today would be three scales).
+  nlohmann::json old = ReconstructionOptionsToJson(SmallBundle().reconstruction);
+  old["difference"].erase("context_sigmas_px");
+  CHECK(ReconstructionOptionsFromJson(old, "old bundle").difference.context_sigmas_px.empty());
+  CHECK(ReconstructionOptionsFromJson(ReconstructionOptionsToJson(b.reconstruction), "new")
+            .difference.context_sigmas_px == std::vector<double>{1.5, 4.0});
+  // The options say 11 inputs, the MLP takes 5: refused, naming both.
   ModelBundle wrong = SmallBundle();
   wrong.reconstruction.difference.context_sigmas_px = {2.0};
   CHECK_THROWS_WITH(wrong.MakeReconstructor(1),
