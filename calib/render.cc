@@ -12,6 +12,19 @@ namespace gs360 {
 namespace {
 
 constexpr double kDegToRad = std::numbers::pi / 180.0;
+
+// Signed penetration of a ball of `radius` along the normal line of a surface point x0 with unit
+// normal n0, q = x0 - ball centre: see NormalPenetration in render.h.
+double PenetrationAlongNormal(const Eigen::Vector3d& q, const Eigen::Vector3d& n0, double radius) {
+  // x0 - s n0 is inside the ball for s^2 - 2 s (q.n0) + |q|^2 - r^2 < 0; x0 + g n0 reaches its
+  // surface at g^2 + 2 g (q.n0) + |q|^2 - r^2 = 0. Same discriminant.
+  const double r2 = radius * radius;
+  const double b = q.dot(n0), disc = b * b - q.squaredNorm() + r2;
+  if (disc < 0.0) return -(q.norm() - radius);            // the line misses the ball
+  if (q.squaredNorm() <= r2) return b + std::sqrt(disc);  // inside: past the far root along -n0
+  const double s_near = -b - std::sqrt(disc);             // outside: first root along +n0
+  return s_near >= 0.0 ? -s_near : -(q.norm() - radius);
+}
 // Points on the tangent cone's circle used for the projected bounding box. With 96 samples the
 // chord between neighbours stays within 0.06% of the projected radius of the circle.
 constexpr int kConeSamples = 96;
@@ -171,16 +184,11 @@ ProbeRender RenderProbe(const SurfaceMap& map, const FisheyeCamera& camera,
       ++out.contact_pixels;
       sum_u += u;
       sum_v += v;
-      // The imprint's depth along the gel's own normal at this pixel's surface point, where x0
-      // is inside the ball: how far x0 must move along -n0 to leave it (NormalPenetration). Its
-      // maximum is the press depth on any surface shape; (rho0 - t_b) |d.n0| is that only on a
-      // flat one.
-      const Eigen::Vector3d q = map.point0(u, v) - c;
-      if (q.squaredNorm() <= r * r) {
-        const double qn = q.dot(n0);
-        const double depth = qn + std::sqrt(std::max(qn * qn - q.squaredNorm() + r * r, 0.0));
-        out.max_indentation_mm = std::max(out.max_indentation_mm, depth);
-      }
+      // The imprint's depth along the gel's own normal at this pixel's surface point (> 0 where
+      // x0 is inside the ball). Its maximum is the press depth on any surface shape;
+      // (rho0 - t_b) |d.n0| is that only on a flat one.
+      out.max_indentation_mm =
+          std::max(out.max_indentation_mm, PenetrationAlongNormal(map.point0(u, v) - c, n0, r));
     }
   }
   if (out.contact_pixels > 0) {
@@ -197,25 +205,12 @@ cv::Mat NormalPenetration(const SurfaceMap& map, const cv::Rect& roi,
   }
   const cv::Rect r = roi & cv::Rect(0, 0, map.width(), map.height());
   cv::Mat out(r.size(), CV_32F, cv::Scalar::all(std::numeric_limits<float>::quiet_NaN()));
-  const double r2 = ball_radius * ball_radius;
   for (int y = 0; y < r.height; ++y) {
     for (int x = 0; x < r.width; ++x) {
       const int u = r.x + x, v = r.y + y;
       if (!map.visible(u, v)) continue;
-      const Eigen::Vector3d q = map.point0(u, v) - ball_center_cam;
-      const Eigen::Vector3d n0 = map.normal0(u, v);
-      // x0 - s n0 is inside the ball for s^2 - 2 s (q.n0) + |q|^2 - r^2 < 0; x0 + g n0 reaches
-      // its surface at g^2 + 2 g (q.n0) + |q|^2 - r^2 = 0. Same discriminant.
-      const double b = q.dot(n0), disc = b * b - q.squaredNorm() + r2;
-      double p;
-      if (disc < 0.0) {
-        p = -(q.norm() - ball_radius);  // the line misses the ball
-      } else if (q.squaredNorm() <= r2) {
-        p = b + std::sqrt(disc);  // inside: move along -n0 until the far root is passed
-      } else {
-        const double s_near = -b - std::sqrt(disc);  // outside: first root along +n0
-        p = s_near >= 0.0 ? -s_near : -(q.norm() - ball_radius);
-      }
+      const double p = PenetrationAlongNormal(map.point0(u, v) - ball_center_cam, map.normal0(u, v),
+                                              ball_radius);
       out.at<float>(y, x) = static_cast<float>(p);
     }
   }
