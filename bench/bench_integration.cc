@@ -3,7 +3,7 @@
 // fisheye on the axis at z = -1.5 mm, exact normals, no noise. Per view-angle band, the mean
 // errors of plain Poisson, of the discontinuity-aware integrator and of the height field
 // (recon/height_field.h; --hf-init starts it from the Poisson solution, as the Reconstructor
-// does), and the time per roi.
+// does), its peak indentation error (max h against the press depth), and the time per roi.
 // Also the surface map build time (640 x 480, 2 threads) for the cylinder sensor with fins.
 //
 //   bench_integration [--depth MM] [--iterations N] [--sharpness S] [--scale S]
@@ -38,7 +38,7 @@ struct Band {
   int n = 0;
   double view = 0, p_rho = 0, d_rho = 0, p_p2s = 0, d_p2s = 0, p_roi = 0, d_roi = 0;
   double p_ms = 0, d_ms = 0, px = 0;
-  double h_p2s = 0, h_roi = 0, h_ms = 0;
+  double h_p2s = 0, h_roi = 0, h_ms = 0, h_peak = 0, h_peak_bias = 0;
 };
 
 }  // namespace
@@ -153,11 +153,18 @@ int main(int argc, char** argv) {
       b.p_ms += 1e3 * p_s, b.d_ms += 1e3 * d_s;
       b.px += s.roi.area();
       b.h_p2s += eh.contact_p2s, b.h_roi += eh.roi_p2s, b.h_ms += 1e3 * h_s;
+      double peak_h = 0.0;
+      for (int y = 0; y < rh.height.rows; ++y)
+        for (int x = 0; x < rh.height.cols; ++x)
+          peak_h = std::max(peak_h, rh.height.at<double>(y, x));
+      b.h_peak += std::abs(peak_h - depth), b.h_peak_bias += peak_h - depth;
       if (verbose) {
-        std::printf("%6.1f %6.0f %5d %3dx%-3d | %9.4f %9.4f | %9.4f %9.4f | %8.2f %8.2f  it %d\n",
-                    ep.view_angle_deg, az_deg, s.contact_pixels, s.roi.width, s.roi.height,
-                    ep.contact_rho, ed.contact_rho, ep.contact_p2s, ed.contact_p2s, 1e3 * p_s,
-                    1e3 * d_s, rd.iterations);
+        std::printf(
+            "%6.1f %6.0f %5d %3dx%-3d | %9.4f %9.4f | %9.4f %9.4f | %8.2f %8.2f  it %d | HF p2s "
+            "%.4f peak %+.4f\n",
+            ep.view_angle_deg, az_deg, s.contact_pixels, s.roi.width, s.roi.height, ep.contact_rho,
+            ed.contact_rho, ep.contact_p2s, ed.contact_p2s, 1e3 * p_s, 1e3 * d_s, rd.iterations,
+            eh.contact_p2s, peak_h - depth);
       }
     }
   }
@@ -177,11 +184,11 @@ int main(int argc, char** argv) {
                 names[k], b.n, b.view / n, b.p_rho / n, b.d_rho / n, b.p_p2s / n, b.d_p2s / n,
                 b.p_roi / n, b.d_roi / n, b.px / n, b.p_ms / n, b.d_ms / n);
   }
-  std::printf("height field (HF, iterations %d):\n%-12s | %9s %9s %8s\n", hf.iterations, "band",
-              "HF p2s", "HF roi", "HF ms");
+  std::printf("height field (HF, iterations %d):\n%-12s | %9s %9s %8s | %9s %9s\n", hf.iterations,
+              "band", "HF p2s", "HF roi", "HF ms", "HF peak", "peak bias");
   for (auto& [k, b] : bands) {
-    std::printf("%-12s | %9.4f %9.4f %8.2f\n", names[k], b.h_p2s / b.n, b.h_roi / b.n,
-                b.h_ms / b.n);
+    std::printf("%-12s | %9.4f %9.4f %8.2f | %9.4f %+9.4f\n", names[k], b.h_p2s / b.n,
+                b.h_roi / b.n, b.h_ms / b.n, b.h_peak / b.n, b.h_peak_bias / b.n);
   }
   return 0;
 }

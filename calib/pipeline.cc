@@ -770,7 +770,7 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
   {
     Hasher h;
     const ValidationOptions& vo = options.validation;
-    h.Add("validate/2").Add(train_key).Add(map_key).Add(dataset_key);
+    h.Add("validate/3").Add(train_key).Add(map_key).Add(dataset_key);
     h.Add(ReconstructionOptionsToJson(options.reconstruction).dump());
     h.AddPod(vo.max_probes).AddDouble(vo.fin_near_mm).AddPod(vo.examples);
     h.Add(truth != nullptr ? truth->Describe() : std::string("no truth"));

@@ -14,8 +14,9 @@
 //   1. projects the current surface X into the image and rasterises it with a depth buffer:
 //      every pixel gets the grid position s'(p) of the point it sees and its distance rho(p);
 //      grid points no pixel sees (behind the bump) get no data;
-//   2. turns each pixel's observed normal n(p) (from the MLP's slopes) into
-//      targets for dh/du, dh/dv at the grid point nearest s'(p) (averaged where several land);
+//   2. turns each pixel's observed normal n(p) (from the MLP's slopes) into targets for dh/du,
+//      dh/dv at s'(p), each given to the two grid edges whose midpoints bracket s'(p) along
+//      that direction (linearly weighted, on the nearest row; averaged where several land);
 //   3. solves the weighted least squares  sum_edges w (h_b - h_a - t)^2  with h = 0 on the
 //      region's border; edges without data get a small weight (a membrane: the hidden far side
 //      of the imprint is bridged smoothly between the border and what is seen).
