@@ -71,7 +71,7 @@ void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx) {
                   "(validation reports all three)");
   cmd->add_option("--hf-min-view-angle", a.min_view_angle,
                   "Imprints seen more squarely than this (deg) use the discontinuity-aware "
-                  "integrator instead of the height field (default 30; 0 = height field always)");
+                  "integrator instead of the height field (default 0: the height field always)");
   cmd->add_option("--fourier", a.fourier_frequencies,
                   "Fourier features of the pixel position: frequencies per coordinate "
                   "(default 4; 0 = raw u, v only)");

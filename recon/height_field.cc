@@ -142,6 +142,12 @@ void Rasterize(const Grid& g, const FisheyeCamera& camera, const cv::Rect& roi,
 
 void HeightFieldOptions::Check() const {
   if (iterations < 1 || iterations > 100) Bad("iterations", iterations, "in 1..100");
+  if (oblique_iterations < 1 || oblique_iterations > 100) {
+    Bad("oblique_iterations", oblique_iterations, "in 1..100");
+  }
+  if (!(oblique_view_angle_deg >= 0.0 && oblique_view_angle_deg <= 90.0)) {
+    Bad("oblique_view_angle_deg", oblique_view_angle_deg, "in [0, 90]");
+  }
   if (!(tolerance >= 0.0)) Bad("tolerance", tolerance, ">= 0");
   if (!(unobserved_weight > 0.0 && unobserved_weight <= 1.0)) {
     Bad("unobserved_weight", unobserved_weight, "in (0, 1]");

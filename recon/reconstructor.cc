@@ -92,6 +92,8 @@ Json ReconstructionOptionsToJson(const ReconstructionOptions& o) {
         {"min_weight", o.integration.min_weight},
         {"tolerance", o.integration.tolerance},
         {"height_field_iterations", o.integration.height_field.iterations},
+        {"height_field_oblique_iterations", o.integration.height_field.oblique_iterations},
+        {"height_field_oblique_view_angle_deg", o.integration.height_field.oblique_view_angle_deg},
         {"height_field_tolerance", o.integration.height_field.tolerance},
         {"height_field_unobserved_weight", o.integration.height_field.unobserved_weight},
         {"height_field_min_normal_dot", o.integration.height_field.min_normal_dot},
@@ -145,6 +147,13 @@ ReconstructionOptions ReconstructionOptionsFromJson(const Json& json, const std:
     r.Read("min_weight", &o.integration.min_weight);
     r.Read("tolerance", &o.integration.tolerance);
     r.Read("height_field_iterations", &o.integration.height_field.iterations);
+    // Absent in bundles from before the split: one pass count everywhere, as then.
+    if (!j->contains("height_field_oblique_iterations")) {
+      o.integration.height_field.oblique_iterations = o.integration.height_field.iterations;
+    }
+    r.Read("height_field_oblique_iterations", &o.integration.height_field.oblique_iterations);
+    r.Read("height_field_oblique_view_angle_deg",
+           &o.integration.height_field.oblique_view_angle_deg);
     r.Read("height_field_tolerance", &o.integration.height_field.tolerance);
     r.Read("height_field_unobserved_weight", &o.integration.height_field.unobserved_weight);
     r.Read("height_field_min_normal_dot", &o.integration.height_field.min_normal_dot);
@@ -262,9 +271,9 @@ RegionReconstruction Reconstructor::IntegrateSlopes(const cv::Mat& slopes,
   const LogDepthGradients grads =
       ComputeLogDepthGradients(*map_, roi, out.normals, options_.gradients);
   bool height_field = integration.method == IntegrationMethod::kHeightField;
-  if (height_field && integration.height_field.min_view_angle_deg > 0.0) {
-    height_field =
-        ImprintViewAngleDeg(*map_, roi, slopes) >= integration.height_field.min_view_angle_deg;
+  const double imprint_view_deg = height_field ? ImprintViewAngleDeg(*map_, roi, slopes) : 0.0;
+  if (height_field) {
+    height_field = imprint_view_deg >= integration.height_field.min_view_angle_deg;
   }
   if (height_field) {
     // Start from plain Poisson's indentation (about 1 ms): right where the view is steep, and
@@ -272,8 +281,9 @@ RegionReconstruction Reconstructor::IntegrateSlopes(const cv::Mat& slopes,
     IntegrationOptions poisson = integration;
     poisson.method = IntegrationMethod::kPoisson;
     const cv::Mat h0 = IndentationFromRho(*map_, roi, IntegrateLogDepth(*map_, grads, poisson).rho);
-    out.rho =
-        IntegrateHeightField(*map_, camera_, roi, out.normals, integration.height_field, h0).rho;
+    HeightFieldOptions passes = integration.height_field;
+    passes.iterations = passes.Passes(imprint_view_deg);
+    out.rho = IntegrateHeightField(*map_, camera_, roi, out.normals, passes, h0).rho;
   } else {
     IntegrationOptions along_rays = integration;
     if (along_rays.method == IntegrationMethod::kHeightField) {

@@ -121,6 +121,38 @@ TEST_CASE(
   CHECK(sum_h / scenes < 0.05);
 }
 
+TEST_CASE("Squarely seen imprints: the height field keeps the rim's slope jump sharp",
+          "[height_field]") {
+  // Each observed slope belongs to the grid edges whose midpoints bracket where it is seen.
+  // Handing it to the nearest grid node instead blurs the rim by a pixel: on these six scenes
+  // with exact slopes that gave 0.0114 mm mean and 0.017 mm peak error, this 0.0097 and 0.014.
+  const WallScene& w = Scene();
+  double sum = 0.0, peak = 0.0;
+  int scenes = 0;
+  for (const double view : {17.0, 24.0}) {
+    for (const double az : {20.0, 65.0, 110.0}) {
+      const Eigen::Vector3d c = w.Ball(view, az, 1.0);
+      const testing::PressScene s = testing::RenderPress(w.map, w.camera, c, 2.0);
+      REQUIRE(s.contact_pixels > 1000);
+      const testing::DeformedWall wall(10.0, Eigen::Vector3d::Zero(), c, 2.0);
+      IntegrationOptions poisson;
+      poisson.method = IntegrationMethod::kPoisson;
+      const cv::Mat h0 = IndentationFromRho(
+          w.map, s.roi,
+          IntegrateLogDepth(w.map, ComputeLogDepthGradients(w.map, s.roi, s.normals), poisson).rho);
+      const HeightFieldResult rh =
+          IntegrateHeightField(w.map, w.camera, s.roi, s.normals, HeightFieldOptions{}, h0);
+      const double e = testing::MeasurePress(w.map, s, rh.rho, &wall).contact_p2s;
+      double max_h = 0.0;
+      cv::minMaxLoc(rh.height, nullptr, &max_h);
+      WARN("view " << view << " deg, azimuth " << az << ": " << e << " mm, peak " << max_h);
+      sum += e, peak += std::abs(max_h - 1.0), ++scenes;
+    }
+  }
+  CHECK(sum / scenes < 0.0105);
+  CHECK(peak / scenes < 0.0155);
+}
+
 TEST_CASE("The imprint's view angle picks the integrator", "[height_field]") {
   const WallScene& w = Scene();
   for (const double view : {20.0, 56.0}) {
@@ -145,6 +177,16 @@ TEST_CASE("Height field options and inputs are checked", "[height_field]") {
   o = {};
   o.min_view_angle_deg = 90.0;
   CHECK_THROWS_WITH(o.Check(), Catch::Contains("min_view_angle_deg"));
+  o = {};
+  o.oblique_iterations = 101;
+  CHECK_THROWS_WITH(o.Check(), Catch::Contains("oblique_iterations"));
+  o = {};
+  o.oblique_view_angle_deg = -1.0;
+  CHECK_THROWS_WITH(o.Check(), Catch::Contains("oblique_view_angle_deg"));
+  o = {};
+  o.iterations = 9, o.oblique_iterations = 4, o.oblique_view_angle_deg = 40.0;
+  CHECK(o.Passes(39.9) == 9);
+  CHECK(o.Passes(40.0) == 4);
   o = {};
   o.min_normal_dot = 1.0;
   CHECK_THROWS_WITH(o.Check(), Catch::Contains("min_normal_dot"));

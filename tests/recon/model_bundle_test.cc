@@ -115,6 +115,26 @@ TEST_CASE("model bundle: context scales travel with the model, and must match it
   CHECK(ReconstructionOptionsFromJson(old, "old bundle").difference.context_sigmas_px.empty());
   CHECK(ReconstructionOptionsFromJson(ReconstructionOptionsToJson(b.reconstruction), "new")
             .difference.context_sigmas_px == std::vector<double>{1.5, 4.0});
+  // One written before the oblique pass count existed ran its height_field_iterations
+  // everywhere, and still does.
+  nlohmann::json one_count = ReconstructionOptionsToJson(SmallBundle().reconstruction);
+  one_count["integration"]["height_field_iterations"] = 6;
+  one_count["integration"].erase("height_field_oblique_iterations");
+  one_count["integration"].erase("height_field_oblique_view_angle_deg");
+  const HeightFieldOptions hf =
+      ReconstructionOptionsFromJson(one_count, "old bundle").integration.height_field;
+  CHECK(hf.Passes(10.0) == 6);
+  CHECK(hf.Passes(70.0) == 6);
+  nlohmann::json split = ReconstructionOptionsToJson(SmallBundle().reconstruction);
+  split["integration"]["height_field_oblique_iterations"] = 3;
+  split["integration"]["height_field_oblique_view_angle_deg"] = 45.0;
+  const HeightFieldOptions hf2 =
+      ReconstructionOptionsFromJson(split, "new bundle").integration.height_field;
+  CHECK(hf2.Passes(44.0) == HeightFieldOptions{}.iterations);
+  CHECK(hf2.Passes(45.0) == 3);
+  split["integration"]["height_field_oblique_iterations"] = 0;
+  CHECK_THROWS_WITH(ReconstructionOptionsFromJson(split, "bad bundle"),
+                    Catch::Contains("bad bundle") && Catch::Contains("oblique_iterations"));
   // The options say 11 inputs, the MLP takes 5: refused, naming both.
   ModelBundle wrong = SmallBundle();
   wrong.reconstruction.difference.context_sigmas_px = {2.0};
