@@ -45,7 +45,9 @@ struct ReconstructionOptions {
 nlohmann::json ReconstructionOptionsToJson(const ReconstructionOptions& options);
 // Strict: unknown keys or wrong types throw std::invalid_argument naming `where` and the field.
 // Missing keys keep their defaults, except difference.context_sigmas_px: a "difference" object
-// without it was written before context features existed, and means none.
+// without it was written before context features existed, and means none; and
+// integration.height_field_oblique_iterations: without it, height_field_iterations applies at
+// every view angle, as it did then.
 ReconstructionOptions ReconstructionOptionsFromJson(const nlohmann::json& json,
                                                     const std::string& where);
 
