@@ -155,6 +155,50 @@ TEST_CASE("Surface map from inside a sphere matches the analytic sphere", "[surf
   REQUIRE(max_n_err < 2e-3);
 }
 
+TEST_CASE("Surface map of a cylinder wall around the axis, seen out to 80 deg from it",
+          "[surface_map]") {
+  // The side wall the base camera sees: its normal is square to the optical axis (n0.z = 0),
+  // where the paper's camera-frame slope -nx/nz has no value; the tangent frame must not care.
+  const FisheyeCamera camera;
+  const Rigid3d cam_from_sensor(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0, 0, 1.5));
+  const double radius = 10.0;
+  const Bvh wall(gs360::testing::DenseCylinder(radius, 45.0, 4096, 2));
+  const SurfaceMap map = SurfaceMap::Build(camera, cam_from_sensor, wall, nullptr);
+  int checked = 0, beyond_78 = 0;
+  double max_off_axis = 0.0, max_rho_err = 0.0, max_n_err = 0.0, max_slope_err = 0.0;
+  for (int v = 0; v < 480; v += 3) {
+    for (int u = 0; u < 640; u += 3) {
+      if (!map.visible(u, v)) continue;
+      const Eigen::Vector3d d = map.ray(u, v).normalized();
+      const double off_axis = std::acos(d.z()) / kDeg;
+      if (off_axis < 30.0) continue;  // the far end of the tube: seen nearly along its axis
+      ++checked;
+      beyond_78 += off_axis > 78.0;
+      max_off_axis = std::max(max_off_axis, off_axis);
+      const double radial = std::hypot(d.x(), d.y());
+      max_rho_err = std::max(max_rho_err, std::abs(map.rho0(u, v) - radius / radial));
+      const Eigen::Vector3d n(d.x() / radial, d.y() / radial, 0.0);  // outward
+      max_n_err = std::max(max_n_err, (map.normal0(u, v) - n).norm());
+      REQUIRE(map.view_angle(u, v) / kDeg == Approx(90.0 - off_axis).margin(0.15));
+      CheckFrame(map, u, v);
+      // A tilted normal goes to tangent-frame slopes and back, finite, with n0.z ~ 0.
+      const Eigen::Vector3d tilted = map.NormalFromSlopes(u, v, 0.6, -0.4);
+      const Eigen::Vector2d g = map.SlopesFromNormal(u, v, tilted);
+      REQUIRE(g.allFinite());
+      max_slope_err = std::max(max_slope_err, (g - Eigen::Vector2d(0.6, -0.4)).norm());
+    }
+  }
+  REQUIRE(checked > 2000);
+  REQUIRE(beyond_78 > 20);  // the lens's field reaches 80 deg, and the wall is seen there
+  REQUIRE(max_off_axis > 79.0);
+  WARN("cylinder wall: " << checked << " pixels checked, out to " << max_off_axis
+                         << " deg off axis; rho0 error " << max_rho_err << " mm, n0 error "
+                         << max_n_err);
+  REQUIRE(max_rho_err < 2e-3);
+  REQUIRE(max_n_err < 2e-3);
+  REQUIRE(max_slope_err < 1e-6);
+}
+
 TEST_CASE("Surface map of the cylinder sensor: fins excluded and dilated, grazing flagged",
           "[surface_map]") {
   const FisheyeCamera camera;
