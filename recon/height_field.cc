@@ -225,9 +225,9 @@ HeightFieldResult IntegrateHeightField(const SurfaceMap& map, const FisheyeCamer
     // nearest sy (likewise v). Measured against giving it to the nearest grid node, whose two
     // edges then share it equally (a blur of one pixel across the imprint's edge): mean error
     // with exact slopes < 30 / 30-50 / > 50 deg 0.0100 / 0.0120 / 0.0315 mm against 0.0133 /
-    // 0.0113 / 0.0369 (bench_integration --hf-init --hf-iterations 6); on the 2,000-probe virtual rig 0.0233 mm
-    // against 0.0249 and the peak error 0.054 against 0.060 (docs/benchmarks.md). Spreading
-    // across rows as well blurs the slope jump at the imprint's rim again (0.0241 mm).
+    // 0.0113 / 0.0369 (bench_integration --hf-init --hf-iterations 6); on the 2,000-probe virtual
+    // rig 0.0233 mm against 0.0249 and the peak error 0.054 against 0.060 (docs/benchmarks.md).
+    // Spreading across rows as well blurs the slope jump at the imprint's rim again (0.0241 mm).
     std::fill(target_u.begin(), target_u.end(), 0.0);
     std::fill(weight_u.begin(), weight_u.end(), 0.0);
     std::fill(target_v.begin(), target_v.end(), 0.0);
