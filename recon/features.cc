@@ -14,6 +14,11 @@ namespace {
   throw std::invalid_argument(field + " must be " + rule + ", got " + std::to_string(value));
 }
 
+// One context scale's bound, shared by DifferenceOptions::Check and ContextFeatures.
+void CheckContextSigma(const std::string& field, double sigma_px) {
+  if (!(sigma_px > 0.0 && sigma_px <= 20.0)) Bad(field, sigma_px, "in (0, 20]");
+}
+
 }  // namespace
 
 void DifferenceOptions::Check() const {
@@ -32,10 +37,8 @@ void DifferenceOptions::Check() const {
     Bad("DifferenceOptions.context_sigmas_px's size", static_cast<double>(context_sigmas_px.size()),
         "at most 4");
   }
-  for (double sigma : context_sigmas_px) {
-    if (!(sigma > 0.0 && sigma <= 20.0))
-      Bad("DifferenceOptions.context_sigmas_px", sigma, "in (0, 20]");
-  }
+  for (double sigma : context_sigmas_px)
+    CheckContextSigma("DifferenceOptions.context_sigmas_px", sigma);
 }
 
 int FeatureCount(const DifferenceOptions& options) {
@@ -108,9 +111,7 @@ cv::Mat ContextFeatures(const cv::Mat& diff, const cv::Mat& valid, const cv::Rec
                                 std::to_string(roi.y) + " " + std::to_string(roi.width) + "x" +
                                 std::to_string(roi.height) + " is not inside the image");
   }
-  for (double sigma : sigmas_px) {
-    if (!(sigma > 0.0 && sigma <= 20.0)) Bad("ContextFeatures sigma_px", sigma, "in (0, 20]");
-  }
+  for (double sigma : sigmas_px) CheckContextSigma("ContextFeatures sigma_px", sigma);
   if (sigmas_px.empty()) return cv::Mat();
   const int channels = kContextFeatureCount * static_cast<int>(sigmas_px.size());
   cv::Mat out(roi.size(), CV_32FC(channels), cv::Scalar::all(0));
