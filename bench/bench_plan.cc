@@ -83,9 +83,9 @@ int main(int argc, char** argv) {
       options.press_feed_mm_per_min, options.settle_dwell_s,
       std::max(options.capture_time_s, options.status_poll_latency_s) + options.host_latency_s);
   for (SensorShape shape : shapes) {
-    NominalRigOptions rig_options;
+    RigConfig rig_options;
     rig_options.shape.shape = shape;
-    RigGeometry rig = MakeNominalRig(rig_options);
+    RigGeometry rig = MakeRigGeometry(rig_options);
     if (mesh_only) rig.profile = nullptr;
     std::printf("%s (%s, %d triangles%s)\n", std::string(SensorShapeName(shape)).c_str(),
                 MakeProfile(rig_options.shape)->Describe().c_str(), rig.sensor_mesh.NumTriangles(),

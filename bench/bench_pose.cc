@@ -249,7 +249,7 @@ int main(int argc, char** argv) {
         throw std::invalid_argument("unknown argument " + a);
     }
     gs360::SimRigOptions rig_options;
-    rig_options.shape.shape = gs360::ParseSensorShape(shape);
+    rig_options.rig.shape.shape = gs360::ParseSensorShape(shape);
     auto rig = std::make_shared<gs360::SimRig>(rig_options);
     std::printf("bench_pose: %s, %d probes, press %.2f mm, seed %llu\n", shape.c_str(), probes,
                 depth, static_cast<unsigned long long>(seed));

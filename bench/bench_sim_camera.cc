@@ -52,7 +52,7 @@ int main(int argc, char** argv) {
     std::printf("bench_sim_camera: 640x480, %d frames per kind, 1 mm presses\n", frames);
     for (const char* shape : {"cylinder", "cone", "spline"}) {
       gs360::SimRigOptions options;
-      options.shape.shape = gs360::ParseSensorShape(shape);
+      options.rig.shape.shape = gs360::ParseSensorShape(shape);
       auto rig = std::make_shared<gs360::SimRig>(options);
       gs360::TactileCamera camera(rig);
       std::printf("\n%s: %d gel triangles; background %.3f s (2 threads)\n", shape,

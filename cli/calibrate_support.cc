@@ -8,7 +8,8 @@
 
 #include "calib/report.h"
 #include "cli/progress.h"
-#include "daemon/rig_config.h"
+#include "gcode/plan.h"
+#include "rig/rig_config.h"
 
 namespace gs360::cli {
 

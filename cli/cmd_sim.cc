@@ -6,8 +6,8 @@
 
 #include "cli/commands.h"
 #include "cli/sim_bridge.h"
-#include "daemon/json_reader.h"
-#include "daemon/rig_config.h"
+#include "base/json_reader.h"
+#include "rig/rig_config.h"
 #include "sim/virtual_cnc.h"
 #include "sim/virtual_rig.h"
 

@@ -10,7 +10,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "daemon/json_reader.h"
+#include "base/json_reader.h"
 #include "geometry/hash.h"
 #include "sim/checkerboard.h"
 #include "sim/ground_truth.h"
@@ -19,14 +19,7 @@ namespace gs360::cli {
 
 SimRigOptions SimRigOptionsFor(const RigConfig& rig, std::uint64_t seed) {
   SimRigOptions sim;
-  sim.shape = rig.shape;
-  sim.mesh_path = rig.mesh_path;
-  sim.fins = rig.fins;
-  sim.nominal_intrinsics = rig.camera;
-  sim.camera_z = rig.camera_z;
-  sim.machine_from_sensor = rig.machine_from_sensor();
-  sim.tool_offset = rig.tool_offset;
-  sim.ball_radius = rig.ball_radius;
+  sim.rig = rig;
   sim.seed = seed;
   return sim;
 }

@@ -6,7 +6,7 @@
 #include <filesystem>
 #include <memory>
 
-#include "daemon/rig_config.h"
+#include "rig/rig_config.h"
 #include "daemon/run_config.h"
 #include "sim/virtual_rig.h"
 

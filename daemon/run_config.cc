@@ -4,7 +4,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "daemon/json_reader.h"
+#include "base/json_reader.h"
 
 namespace gs360 {
 namespace {
@@ -64,6 +64,8 @@ nlohmann::json PlanOptionsToJson(const PlanOptions& p) {
   return j;
 }
 
+}  // namespace
+
 void ReadPlanOptions(JsonReader& r, PlanOptions& p) {
   for (const auto& f : kPlanDoubles) r.Get(f.name, p.*(f.member));
   for (const auto& f : kPlanInts) r.Get(f.name, p.*(f.member));
@@ -73,8 +75,6 @@ void ReadPlanOptions(JsonReader& r, PlanOptions& p) {
   r.Get("return_to_start", p.return_to_start);
   r.Get("start_machine", p.start_machine);
 }
-
-}  // namespace
 
 void MachineConfig::Check() const {
   if (uri.empty()) Invalid("machine.uri", "\"\"", "must name the controller's port");
@@ -116,6 +116,10 @@ void RunConfig::Check() const {
   machine.Check();
   camera.Check();
   engine.Check();
+  if (!(plan.press_depth < rig.gel_thickness)) {
+    Invalid("plan.press_depth", std::to_string(plan.press_depth),
+            "must be less than rig.gel_thickness (" + std::to_string(rig.gel_thickness) + ")");
+  }
   if (std::abs(plan.ball_radius - rig.ball_radius) > 1e-9) {
     Invalid("plan.ball_radius", std::to_string(plan.ball_radius),
             "must equal rig.ball_radius (" + std::to_string(rig.ball_radius) + ")");
@@ -153,11 +157,9 @@ nlohmann::json RunConfigToJson(const RunConfig& c) {
   };
 }
 
-RunConfig RunConfigFromJson(const nlohmann::json& json, const std::string& where) {
-  RunConfig c;
-  JsonReader r(json, where);
+void ReadRunConfig(JsonReader& r, RunConfig& c) {
   r.Get("name", c.name);
-  if (const auto* rig = r.Raw("rig")) c.rig = RigConfigFromJson(*rig, where);
+  r.Object("rig", [&](JsonReader& o) { ReadRigConfig(o, c.rig); });
   r.Object("plan", [&](JsonReader& o) { ReadPlanOptions(o, c.plan); });
   c.plan.ball_radius = c.rig.ball_radius;
   r.Object("machine", [&](JsonReader& o) {
@@ -193,6 +195,12 @@ RunConfig RunConfigFromJson(const nlohmann::json& json, const std::string& where
     o.Get("reconnect_timeout_s", c.engine.reconnect_timeout_s);
     o.Get("max_recoveries", c.engine.max_recoveries);
   });
+}
+
+RunConfig RunConfigFromJson(const nlohmann::json& json, const std::string& where) {
+  RunConfig c;
+  JsonReader r(json, where);
+  ReadRunConfig(r, c);
   r.RejectUnknown();
   try {
     c.Check();

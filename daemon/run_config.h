@@ -9,7 +9,7 @@
 
 #include "capture/capture_press.h"
 #include "capture/frame_source.h"
-#include "daemon/rig_config.h"
+#include "rig/rig_config.h"
 #include "gcode/plan.h"
 
 namespace gs360 {
@@ -52,7 +52,14 @@ struct RunConfig {
   void Check() const;
 };
 
+class JsonReader;
+
 nlohmann::json RunConfigToJson(const RunConfig& config);
+// Reads the sections present (name, rig, plan, machine, camera, engine) into `config`; absent
+// keys keep its values; no Check(). For larger documents (the daemon's configuration).
+void ReadRunConfig(JsonReader& reader, RunConfig& config);
+// The plan options a user may set (docs/running.md), read into `plan`.
+void ReadPlanOptions(JsonReader& reader, PlanOptions& plan);
 // Strict: unknown keys, wrong types and invalid values are ConfigError naming `where` and the
 // field path. Absent keys keep their defaults.
 RunConfig RunConfigFromJson(const nlohmann::json& json, const std::string& where);

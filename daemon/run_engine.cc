@@ -14,7 +14,7 @@
 #include "capture/capture_press.h"
 #include "capture/frame_source.h"
 #include "capture/impression.h"
-#include "daemon/json_reader.h"
+#include "base/json_reader.h"
 #include "gcode/grbl_client.h"
 #include "gcode/probe_program.h"
 #include "geometry/hash.h"

@@ -10,6 +10,7 @@
 #include <unordered_map>
 
 #include "gcode/tour.h"
+#include "rig/rig_shape.h"
 #include "geometry/bvh.h"
 #include "geometry/hash.h"
 #include "geometry/sampling.h"
@@ -121,48 +122,24 @@ void RigGeometry::Check() const {
   camera.Check();
 }
 
-FinOptions NominalRigOptions::DefaultFins() {
-  FinOptions fins;
-  fins.thickness = 0.45;
-  fins.inset = 1.5;
-  fins.bottom_z = 1.5;
-  return fins;
-}
-
-void NominalRigOptions::Check() const {
-  shape.Check();
-  fins.Check();
-  if (!std::isfinite(camera_z)) {
-    throw std::invalid_argument("NominalRigOptions.camera_z must be finite, got " + Num(camera_z));
-  }
-  if (!base_in_machine.allFinite()) {
-    throw std::invalid_argument("NominalRigOptions.base_in_machine must be finite");
-  }
-  if (!(ball_below_spindle >= 0.0) || !std::isfinite(ball_below_spindle)) {
-    throw std::invalid_argument(
-        "NominalRigOptions.ball_below_spindle must be finite and >= 0, got " +
-        Num(ball_below_spindle));
-  }
-}
-
-RigGeometry MakeNominalRig(const NominalRigOptions& options) {
-  options.Check();
+RigGeometry MakeRigGeometry(const RigConfig& config) {
+  RigShape shape = BuildRigShape(config);
   RigGeometry rig;
-  rig.profile = MakeProfile(options.shape);
-  rig.sensor_mesh = MakeRevolutionMesh(*rig.profile, options.shape.tessellation);
-  rig.fins = MakeFins(options.fins, *rig.profile);
-  rig.camera = FisheyeIntrinsics::Default160();
-  // Camera axes = sensor axes; x_cam = x_sensor - (0, 0, camera_z).
-  rig.cam_from_sensor =
-      Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0, 0, -options.camera_z));
-  rig.machine_from_sensor = Rigid3d(Eigen::Quaterniond::Identity(), options.base_in_machine);
-  rig.tool_offset = Eigen::Vector3d(0.0, 0.0, -options.ball_below_spindle);
+  rig.sensor_mesh = std::move(shape.gel);
+  // For a mesh the fitted profile only places the fins; visibility and collisions use the mesh.
+  if (shape.profile_is_exact) rig.profile = shape.profile;
+  rig.fins = std::move(shape.fins);
+  rig.camera = config.camera;
+  rig.cam_from_sensor = config.cam_from_sensor();
+  rig.machine_from_sensor = config.machine_from_sensor();
+  rig.tool_offset = config.tool_offset;
+  rig.Check();
   return rig;
 }
 
-RigGeometry MakeNominalRig() {
-  const NominalRigOptions options;
-  return MakeNominalRig(options);
+RigGeometry MakeRigGeometry() {
+  const RigConfig defaults;
+  return MakeRigGeometry(defaults);
 }
 
 void PlanOptions::Check() const {

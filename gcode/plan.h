@@ -57,6 +57,7 @@
 #include "geometry/mesh.h"
 #include "geometry/rigid3.h"
 #include "geometry/shapes.h"
+#include "rig/rig_config.h"
 
 namespace gs360 {
 
@@ -79,25 +80,14 @@ struct RigGeometry {
   void Check() const;
 };
 
-// A nominal rig for a built-in shape (the same CAD values as the virtual rig, sim/rig_model.h):
-// the shape's mesh and profile, fins 0.45 mm thick, 1.5 mm inside the surface, from z = 1.5 mm
-// up, the default 160-degree lens on the axis at z = camera_z looking +z (camera x = sensor x,
-// camera y = sensor y), the sensor upright (sensor +z = machine +z) with its base centre at
-// `base_in_machine`, and the ball `ball_below_spindle` mm below the machine position
-// (tool_offset = (0, 0, -ball_below_spindle)). The default placement centres the sensor in the
+// The planner's view of a rig described by `rig` (rig/rig_config.h, its defaults the only ones):
+// the gel mesh (built or loaded), the exact profile of a built-in shape (none for a mesh), the
+// fins, the nominal camera and the mount. The default rig centres the default sensor in the
 // default travel (300 x 180 x 45 mm, positions in [-travel, 0]) with every press and the
-// over-the-top plane inside the 45 mm of Z.
-struct NominalRigOptions {
-  SensorShapeOptions shape;
-  FinOptions fins = DefaultFins();
-  double camera_z = -1.5;  // mm, camera centre on the axis (sensor frame)
-  Eigen::Vector3d base_in_machine{-150.0, -90.0, -83.0};
-  double ball_below_spindle = 40.0;  // mm
-  static FinOptions DefaultFins();
-  void Check() const;
-};
-RigGeometry MakeNominalRig(const NominalRigOptions& options);
-RigGeometry MakeNominalRig();  // default options
+// over-the-top plane inside the 45 mm of Z. Throws MeshError for a mesh that cannot be used,
+// std::invalid_argument for an invalid rig.
+RigGeometry MakeRigGeometry(const RigConfig& rig);
+RigGeometry MakeRigGeometry();  // the default rig
 
 struct PlanOptions {
   // Sampling.

@@ -6,6 +6,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "rig/rig_shape.h"
 #include "sim/camera_random.h"
 
 namespace gs360 {
@@ -64,55 +65,18 @@ TruePerturbationOptions TruePerturbationOptions::None() {
   return p;
 }
 
-FinOptions SimRigOptions::DefaultFins() {
-  FinOptions fins;
-  fins.thickness = 0.45;
-  fins.inset = 1.5;
-  fins.bottom_z = 1.5;
-  return fins;
-}
-
 void SimRigOptions::Check() const {
-  if (mesh_path.empty()) shape.Check();
+  rig.Check();
   mesh_load.Check();
-  fins.Check();
-  nominal_intrinsics.Check();
   perturbation.Check();
-  if (!std::isfinite(camera_z) || !(camera_z < fins.bottom_z)) {
-    ThrowField("SimRigOptions.camera_z", camera_z,
-               "must be finite and below the fins' bottom edge (fins.bottom_z = " +
-                   std::to_string(fins.bottom_z) + ")");
-  }
-  if (!std::isfinite(ball_radius) || !(ball_radius > 0.0)) {
-    ThrowField("SimRigOptions.ball_radius", ball_radius, "must be finite and > 0");
-  }
-  if (!machine_from_sensor.translation.allFinite() ||
-      !machine_from_sensor.rotation.coeffs().allFinite()) {
-    throw std::invalid_argument("SimRigOptions.machine_from_sensor is not finite");
-  }
-  if (!tool_offset.allFinite()) {
-    throw std::invalid_argument("SimRigOptions.tool_offset is not finite");
-  }
-}
-
-Rigid3d NominalCamFromSensor(double camera_z) {
-  // sensor_from_cam: identity rotation, camera centre at (0, 0, camera_z).
-  return Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.0, 0.0, -camera_z));
 }
 
 SimRig::SimRig(const SimRigOptions& options) : options_(options) {
   options_.Check();
-  TriangleMesh gel;
-  if (options_.mesh_path.empty()) {
-    profile_ = MakeProfile(options_.shape);
-    gel = MakeRevolutionMesh(*profile_, options_.shape.tessellation);
-  } else {
-    gel = LoadMesh(options_.mesh_path, options_.mesh_load);
-    if (!gel.HasNormals()) gel.ComputeVertexNormals();
-  }
-  gel_bvh_ = std::make_unique<Bvh>(gel);
-  if (!profile_) profile_ = MakeSplineProfile(FitInscribedProfile(*gel_bvh_));
-  fin_bvh_ = std::make_unique<Bvh>(MakeFins(options_.fins, *profile_));
+  RigShape shape = BuildRigShape(options_.rig, options_.mesh_load);
+  profile_ = std::move(shape.profile);
+  gel_bvh_ = std::make_unique<Bvh>(std::move(shape.gel));
+  fin_bvh_ = std::make_unique<Bvh>(std::move(shape.fins));
 
   // True camera: the nominal one perturbed by fixed magnitudes in seeded directions.
   SimRandom rng(MixSeed(options_.seed, 0x7472756563616dull));  // "truecam"
@@ -130,7 +94,7 @@ SimRig::SimRig(const SimRigOptions& options) : options_(options) {
   sensor_from_cam_true.translation += centre_offset;
   true_cam_from_sensor_ = sensor_from_cam_true.Inverse();
 
-  true_intrinsics_ = options_.nominal_intrinsics;
+  true_intrinsics_ = options_.rig.camera;
   const double focal_scale = 1.0 + rng.Sign() * p.focal_relative;
   const double aspect_scale = 1.0 + rng.Sign() * p.aspect_relative;
   true_intrinsics_.fx *= focal_scale;
@@ -152,20 +116,16 @@ SimRig::SimRig(const SimRigOptions& options) : options_(options) {
 }
 
 std::string SimRig::Describe() const {
-  if (!options_.mesh_path.empty()) return "mesh " + options_.mesh_path;
-  return std::string(SensorShapeName(options_.shape.shape));
-}
-
-Rigid3d SimRig::nominal_cam_from_sensor() const {
-  return NominalCamFromSensor(options_.camera_z);
+  if (!options_.rig.mesh_path.empty()) return "mesh " + options_.rig.mesh_path;
+  return std::string(SensorShapeName(options_.rig.shape.shape));
 }
 
 Eigen::Vector3d SimRig::BallCenterSensor(const Eigen::Vector3d& machine_position) const {
-  return options_.machine_from_sensor.Inverse() * (machine_position + options_.tool_offset);
+  return machine_from_sensor().Inverse() * (machine_position + tool_offset());
 }
 
 Eigen::Vector3d SimRig::MachinePositionForBall(const Eigen::Vector3d& ball_center_sensor) const {
-  return options_.machine_from_sensor * ball_center_sensor - options_.tool_offset;
+  return machine_from_sensor() * ball_center_sensor - tool_offset();
 }
 
 }  // namespace gs360

@@ -12,12 +12,10 @@
 // a seeded perturbation of fixed size (TruePerturbationOptions). The true values are reachable
 // only through sim/ground_truth.h, which production code never includes.
 //
-// Default geometry: the cylinder-with-cap sensor (radius 10 mm, height 30 mm), fins 0.45 mm thick
-// from z = 1.5 mm up (1.5 mm inside the outer surface), camera on the axis at z = -1.5 mm looking
-// +z: the camera sits 3 mm below the fins' bottom edge, so the fins, seen almost edge-on, cross
-// the image as a grey cross covering ~10% of the image circle (paper, Sec. "Occlusions"), and
-// every ray of the 160-degree field lands on the gel (the rim ray at 80 deg meets the wall at
-// z ~ 0.3 mm).
+// Default geometry: RigConfig's (the cylinder-with-cap sensor, fins from z = 1.5 mm up, camera
+// on the axis at z = -1.5 mm looking +z): the fins, seen almost edge-on, cross the image as a grey
+// cross covering ~10% of the image circle, and every ray of the 160-degree field lands on the gel
+// (the rim ray at 80 deg meets the wall at z ~ 0.3 mm).
 
 #include <Eigen/Core>
 #include <cstdint>
@@ -29,6 +27,7 @@
 #include "geometry/mesh.h"
 #include "geometry/rigid3.h"
 #include "geometry/shapes.h"
+#include "rig/rig_config.h"
 
 namespace gs360 {
 
@@ -54,31 +53,16 @@ struct TruePerturbationOptions {
 };
 
 struct SimRigOptions {
-  // Gel outer surface: the built-in shape, unless mesh_path is set (a mesh in the sensor frame,
-  // closed except at the base opening z = 0; loaded with mesh_load).
-  SensorShapeOptions shape;
-  std::string mesh_path;
-  MeshLoadOptions mesh_load;
-  // LED fins (geometry/shapes.h). For a mesh, the fins follow a surface of revolution fitted
-  // inside the mesh (geometry/shapes.h FitInscribedProfile).
-  FinOptions fins = DefaultFins();
-  // Nominal camera: the default 160-degree 640x480 lens, on the axis at z = camera_z (mm) looking
-  // +z, image x along sensor +x (cam_from_sensor rotation = identity).
-  FisheyeIntrinsics nominal_intrinsics = FisheyeIntrinsics::Default160();
-  double camera_z = -1.5;
+  // The rig as its user describes it (rig/rig_config.h): gel surface (built-in shape, or a mesh
+  // in the sensor frame, closed except at the base opening z = 0), LED fins, NOMINAL camera and
+  // mount. Production code is given exactly these values.
+  RigConfig rig;
+  MeshLoadOptions mesh_load;  // for rig.mesh_path
   TruePerturbationOptions perturbation;
-  // Mount: the sensor upright in the negative-travel space of a CNC that homes to (0, 0, 0)
-  // (travel -200..0 on each axis by default).
-  Rigid3d machine_from_sensor =
-      Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(-100.0, -100.0, -150.0));
-  // Ball centre = machine position + tool_offset (machine frame, mm).
-  Eigen::Vector3d tool_offset = Eigen::Vector3d(0.0, 0.0, -40.0);
-  double ball_radius = 2.0;  // mm
-  std::uint64_t seed = 1;    // draws the true-camera perturbation
+  std::uint64_t seed = 1;  // draws the true-camera perturbation
 
-  static FinOptions DefaultFins();
   // Throws std::invalid_argument naming the field and its value (delegates to the nested
-  // options' Check()); camera_z must be below the fins' bottom edge and ball_radius > 0.
+  // options' Check()).
   void Check() const;
 };
 
@@ -106,11 +90,11 @@ class SimRig {
   std::string Describe() const;
 
   // What production code is given (config).
-  const FisheyeIntrinsics& nominal_intrinsics() const { return options_.nominal_intrinsics; }
-  Rigid3d nominal_cam_from_sensor() const;
-  const Rigid3d& machine_from_sensor() const { return options_.machine_from_sensor; }
-  const Eigen::Vector3d& tool_offset() const { return options_.tool_offset; }
-  double ball_radius() const { return options_.ball_radius; }
+  const FisheyeIntrinsics& nominal_intrinsics() const { return options_.rig.camera; }
+  Rigid3d nominal_cam_from_sensor() const { return options_.rig.cam_from_sensor(); }
+  Rigid3d machine_from_sensor() const { return options_.rig.machine_from_sensor(); }
+  const Eigen::Vector3d& tool_offset() const { return options_.rig.tool_offset; }
+  double ball_radius() const { return options_.rig.ball_radius; }
 
   // Ball centre in the sensor frame for a machine position (MPos, mm).
   Eigen::Vector3d BallCenterSensor(const Eigen::Vector3d& machine_position) const;
@@ -127,9 +111,5 @@ class SimRig {
   FisheyeIntrinsics true_intrinsics_;
   Rigid3d true_cam_from_sensor_;
 };
-
-// Nominal cam_from_sensor for a camera on the axis at height camera_z looking +z (rotation
-// identity: image x = sensor x, image y = sensor y).
-Rigid3d NominalCamFromSensor(double camera_z);
 
 }  // namespace gs360

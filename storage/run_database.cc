@@ -490,7 +490,7 @@ class Transaction {
 
 #define GS360_RUN_COLUMNS                                                                      \
   "id, name, config_json, mesh_hash, state, created_at, started_at, updated_at, finished_at, " \
-  "active_s, running_since"
+  "active_s, running_since, last_error"
 
 RunRecord ReadRun(const Stmt& s) {
   RunRecord r;
@@ -505,6 +505,7 @@ RunRecord ReadRun(const Stmt& s) {
   r.finished_at = s.GetOptReal(8);
   r.active_s = s.GetReal(9);
   r.running_since = s.GetOptReal(10);
+  r.last_error = s.GetText(11);
   return r;
 }
 
@@ -918,9 +919,39 @@ void RunDatabase::SetRunState(std::int64_t run_id, RunState state) {
       .Real(6, now)
       .Int(7, run_id)
       .Run();
-  c.AddEvent(
-      run_id, EventLevel::kInfo,
-      "run state " + std::string(ToString(run->state)) + " -> " + std::string(ToString(state)), "");
+  if (state == RunState::kRunning) {
+    Stmt clear = c.Prepare("UPDATE runs SET last_error = '' WHERE id = ?");
+    clear.Int(1, run_id).Run();
+  }
+  c.AddEvent(run_id, EventLevel::kInfo,
+             "run state " + std::string(ToString(run->state)) + " -> " +
+                 std::string(ToString(state)),
+             "{\"from\":\"" + std::string(ToString(run->state)) + "\",\"state\":\"" +
+                 std::string(ToString(state)) + "\"}");
+  tx.Commit();
+}
+
+void RunDatabase::SetRunError(std::int64_t run_id, std::string_view message) {
+  const Impl& c = *impl_;
+  Transaction tx(c, Transaction::kWrite);
+  c.RequireRun(run_id);
+  Stmt s = c.Prepare("UPDATE runs SET last_error = ?, updated_at = ? WHERE id = ?");
+  s.Text(1, message).Real(2, c.Now()).Int(3, run_id).Run();
+  c.AddEvent(run_id, EventLevel::kError, message, "");
+  tx.Commit();
+}
+
+void RunDatabase::DeleteRun(std::int64_t run_id) {
+  const Impl& c = *impl_;
+  Transaction tx(c, Transaction::kWrite);
+  const std::optional<RunRecord> run = c.Run(run_id);
+  if (!run) c.Throw(StorageErrc::kNotFound, "no run with id " + std::to_string(run_id));
+  if (run->state == RunState::kRunning) {
+    c.Throw(StorageErrc::kInvalidState,
+            "run " + std::to_string(run_id) + " is running; pause or cancel it first");
+  }
+  Stmt s = c.Prepare("DELETE FROM runs WHERE id = ?");
+  s.Int(1, run_id).Run();
   tx.Commit();
 }
 

@@ -102,6 +102,9 @@ struct RunRecord {
   // Seconds spent in kRunning, up to the last time it left that state.
   double active_s = 0;
   std::optional<double> running_since;  // set while the state is kRunning
+  // Why the run last stopped short (an alarm, a set-up that failed); cleared when it next enters
+  // kRunning. Empty if none.
+  std::string last_error;
 };
 
 // One planned probe, as the planner emits it.
@@ -234,6 +237,12 @@ class RunDatabase {
   // running_since to active_s; for kInterrupted (a daemon that died) the run's last activity,
   // updated_at, is taken as the end. Throws kNotFound, kInvalidState.
   void SetRunState(std::int64_t run_id, RunState state);
+  // Records why the run stopped short (RunRecord::last_error) with an error event, in one
+  // transaction. Throws kNotFound.
+  void SetRunError(std::int64_t run_id, std::string_view message);
+  // Removes the run and everything of it (probes, frames, events, artifacts; its models stay,
+  // detached). Throws kNotFound, kInvalidState while it is kRunning.
+  void DeleteRun(std::int64_t run_id);
 
   // ---- plan and probes ----
   // Inserts the whole plan in one transaction, plan_index = position in `plan`; returns the probe

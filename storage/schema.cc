@@ -105,9 +105,15 @@ CREATE TABLE models (
 );
 )sql";
 
+// The reason the run last stopped short (an alarm, a failed set-up), for the API's last_error.
+constexpr std::string_view kVersion3 = R"sql(
+ALTER TABLE runs ADD COLUMN last_error TEXT NOT NULL DEFAULT '';
+)sql";
+
 constexpr std::array<SchemaMigration, kSchemaVersion> kMigrations = {{
     {1, kVersion1},
     {2, kVersion2},
+    {3, kVersion3},
 }};
 
 }  // namespace

@@ -33,8 +33,6 @@ SmallRun MakeSmallRun(int n, const std::string& name) {
   std::filesystem::create_directories(s.dir);
   s.db_path = s.dir / "run.db";
   SimRigOptions so;
-  so.machine_from_sensor = Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(-150, -90, -93));
-  so.tool_offset = Eigen::Vector3d(0, 0, -50);
   auto rig = std::make_shared<const SimRig>(so);
   TactileCamera camera(rig);
   RunDatabaseOptions dbo;

@@ -213,7 +213,7 @@ Eigen::Vector2d NearSideDirection(const FisheyeCamera& camera, const Rigid3d& ca
 // the measured 1.5 px near-side shift planted on the oblique ones.
 TEST_CASE("EstimateCamFromSensor: oblique impressions are left out of the refinement", "[pose]") {
   SimRigOptions rig_options;
-  rig_options.shape.shape = SensorShape::kCone;
+  rig_options.rig.shape.shape = SensorShape::kCone;
   const SimRig rig(rig_options);
   const FisheyeCamera camera(rig.nominal_intrinsics());
   const Rigid3d nominal = rig.nominal_cam_from_sensor();

@@ -4,7 +4,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "daemon/json_reader.h"
+#include "base/json_reader.h"
 #include "daemon/run_config.h"
 #include "rig_fixture.h"
 

@@ -105,7 +105,7 @@ TEST_CASE("resume refuses to continue when the sensor moved", "[daemon][run]") {
   // the mount, stands in for the disturbed one; the run resumes against it.
   const auto moved_dir = test::FreshDir("moved2");
   SimRigOptions shifted = cli::SimRigOptionsFor(f.config.rig, 7);
-  shifted.machine_from_sensor.translation += Eigen::Vector3d(0.6, 0.0, 0.0);
+  shifted.rig.base_in_machine += Eigen::Vector3d(0.6, 0.0, 0.0);
   VirtualRigOptions options;
   options.rig = shifted;
   options.camera.sensor.seed = 7;

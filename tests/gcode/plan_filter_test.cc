@@ -15,9 +15,9 @@ namespace {
 constexpr double kDeg = std::numbers::pi / 180.0;
 
 RigGeometry Rig(SensorShape shape = SensorShape::kCylinderCap) {
-  NominalRigOptions o;
+  RigConfig o;
   o.shape.shape = shape;
-  return MakeNominalRig(o);
+  return MakeRigGeometry(o);
 }
 
 // A point on the built-in cylinder's wall (radius 10) at azimuth phi and height z, and its normal.
@@ -100,11 +100,11 @@ TEST_CASE("A point seen too obliquely is dropped as view_angle", "[plan]") {
 
 TEST_CASE("A point hidden behind the gel itself is dropped as gel", "[plan]") {
   // An hourglass: the neck at z = 10 hides the wall just above it from a camera at the base.
-  NominalRigOptions ro;
+  RigConfig ro;
   ro.shape.shape = SensorShape::kSpline;
   ro.shape.spline.control_points = {{0.0, 10.0}, {10.0, 4.0}, {20.0, 10.0}, {30.0, 0.0}};
   ro.fins.inset = 1.0;
-  const RigGeometry rig = MakeNominalRig(ro);
+  const RigGeometry rig = MakeRigGeometry(ro);
   PlanOptions o;
   o.max_view_angle_rad = 89.0 * kDeg;
   const ProbePointFilter f(rig, o);
@@ -150,7 +150,7 @@ TEST_CASE("Unreachable points are dropped as reach", "[plan]") {
     so.shape = SensorShape::kSpline;
     so.spline.control_points = {{0.0, 10.0},  {12.0, 10.0}, {13.0, 8.5},
                                 {14.0, 10.0}, {20.0, 10.0}, {30.0, 0.0}};
-    RigGeometry rig = MakeNominalRig();
+    RigGeometry rig = MakeRigGeometry();
     rig.profile = MakeProfile(so);
     rig.sensor_mesh = MakeRevolutionMesh(*rig.profile);
     rig.fins = TriangleMesh{};  // fins cannot follow so tight a groove
@@ -183,9 +183,9 @@ TEST_CASE("Unreachable points are dropped as reach", "[plan]") {
 
 TEST_CASE("Points whose positions leave the machine travel are dropped as travel", "[plan]") {
   // Raise the sensor so that presses on the top need Z above 0 (the machine's top).
-  NominalRigOptions ro;
-  ro.base_in_machine.z() = -55.0;
-  const RigGeometry rig = MakeNominalRig(ro);
+  RigConfig ro;
+  ro.base_in_machine.z() = -65.0;  // the ball 50 mm below the spindle
+  const RigGeometry rig = MakeRigGeometry(ro);
   const ProbePointFilter f(rig, PlanOptions{});
   CHECK(Reason(f, CapPoint(), CapNormal()) == DropReason::kTravel);
   // The lower wall is still inside.

@@ -79,9 +79,9 @@ void CheckLegsClear(const TravelPlanner& travel, const RevolutionProfile& profil
 
 TEST_CASE("Every travel of a plan keeps the tool clear of the sensor", "[plan]") {
   for (SensorShape shape : {SensorShape::kCylinderCap, SensorShape::kSpline}) {
-    NominalRigOptions ro;
+    RigConfig ro;
     ro.shape.shape = shape;
-    const RigGeometry rig = MakeNominalRig(ro);
+    const RigGeometry rig = MakeRigGeometry(ro);
     PlanOptions o;
     o.probe_count = 120;
     const ProbePlan plan = MakeProbePlan(rig, o);
@@ -102,7 +102,7 @@ TEST_CASE("Every travel of a plan keeps the tool clear of the sensor", "[plan]")
 }
 
 TEST_CASE("Blocked travels detour around or over the sensor", "[plan]") {
-  const RigGeometry rig = MakeNominalRig();
+  const RigGeometry rig = MakeRigGeometry();
   const PlanOptions o;
   const ProbePointFilter filter(rig, o);
   const TravelPlanner& travel = filter.travel();

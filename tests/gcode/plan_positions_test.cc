@@ -16,8 +16,8 @@ namespace {
 // A rig whose mount rotates the sensor about the machine z axis and shifts it, with a tool
 // offset that is not purely vertical, so that every term of the mapping matters.
 RigGeometry RotatedRig() {
-  NominalRigOptions o;
-  RigGeometry rig = MakeNominalRig(o);
+  RigConfig o;
+  RigGeometry rig = MakeRigGeometry(o);
   rig.machine_from_sensor =
       Rigid3d::FromAxisAngle(Eigen::Vector3d::UnitZ(), 0.5, Eigen::Vector3d(-140.0, -85.0, -84.0));
   rig.tool_offset = Eigen::Vector3d(0.3, -0.2, -40.0);
@@ -62,7 +62,7 @@ TEST_CASE("Approach, press and retract map through the mount and tool offset exa
 
 TEST_CASE("CheckTravel throws naming the probe, the position and the axis", "[plan]") {
   const PlanOptions o = SmallPlan(200);
-  ProbePlan plan = MakeProbePlan(MakeNominalRig(), o);
+  ProbePlan plan = MakeProbePlan(MakeRigGeometry(), o);
   REQUIRE(plan.probes.size() > 20);
   CHECK_NOTHROW(CheckTravel(plan, o.machine, o.travel_limit_margin));
   plan.probes[17].press_machine.z() = -45.2;  // below $132 = 45
@@ -87,7 +87,7 @@ TEST_CASE("CheckTravel throws naming the probe, the position and the axis", "[pl
 
 TEST_CASE("The tour is a deterministic permutation no slower than the sampling order", "[plan]") {
   const PlanOptions o = SmallPlan(600);
-  const RigGeometry rig = MakeNominalRig();
+  const RigGeometry rig = MakeRigGeometry();
   const ProbePlan a = MakeProbePlan(rig, o);
   const ProbePlan b = MakeProbePlan(rig, o);
   const int n = static_cast<int>(a.probes.size());
@@ -123,7 +123,7 @@ TEST_CASE("The tour is a deterministic permutation no slower than the sampling o
 
 TEST_CASE("EstimatePlan adds up dwell, host time and references as documented", "[plan]") {
   PlanOptions o = SmallPlan(150);
-  const ProbePlan plan = MakeProbePlan(MakeNominalRig(), o);
+  const ProbePlan plan = MakeProbePlan(MakeRigGeometry(), o);
   const int n = static_cast<int>(plan.probes.size());
   const int refs = (n + 24) / 25;
   const double host = std::max(o.capture_time_s, o.status_poll_latency_s) + o.host_latency_s;
@@ -148,7 +148,7 @@ TEST_CASE("EstimatePlan adds up dwell, host time and references as documented", 
 
 TEST_CASE("Plans round-trip through JSON and summarise their figures", "[plan]") {
   const PlanOptions o = SmallPlan(120);
-  const ProbePlan plan = MakeProbePlan(MakeNominalRig(), o);
+  const ProbePlan plan = MakeProbePlan(MakeRigGeometry(), o);
   const nlohmann::json summary = PlanSummaryJson(plan, o);
   CHECK(summary.at("kept").get<int>() == static_cast<int>(plan.probes.size()));
   CHECK(summary.at("candidates").get<int>() == 120);

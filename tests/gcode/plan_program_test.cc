@@ -59,7 +59,7 @@ TEST_CASE("The run's G-code timed by EstimateProgram equals the plan's estimate"
   PlanOptions o;
   o.probe_count = 150;
   o.reference_every = 30;
-  const ProbePlan plan = MakeProbePlan(MakeNominalRig(), o);
+  const ProbePlan plan = MakeProbePlan(MakeRigGeometry(), o);
   const std::vector<std::string> lines = RunProgram(plan, o);
   CHECK(lines.front() == "G21");
   // Every line fits GRBL's 80-character line buffer and its 128-byte RX buffer.

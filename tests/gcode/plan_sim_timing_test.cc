@@ -102,9 +102,9 @@ TEST_CASE("Probe motion on the virtual CNC takes the estimated time", "[plan][si
   o.machine.junction_deviation_mm = s.junction_deviation_mm;
   o.probe_count = 60;
   o.reference_every = 0;
-  NominalRigOptions ro;
-  ro.base_in_machine = Eigen::Vector3d(-25.0, -25.0, -83.0);
-  const ProbePlan plan = MakeProbePlan(MakeNominalRig(ro), o);
+  RigConfig ro;
+  ro.base_in_machine = Eigen::Vector3d(-25.0, -25.0, -93.0);
+  const ProbePlan plan = MakeProbePlan(MakeRigGeometry(ro), o);
   REQUIRE(plan.probes.size() >= 3);
 
   host.SendAll(ProgramPreamble());

@@ -441,7 +441,7 @@ TEST_CASE("tactile camera: every built-in shape and a loaded mesh render", "[sim
   for (const char* name : {"cylinder", "cone", "spline"}) {
     CAPTURE(name);
     SimRigOptions options;
-    options.shape.shape = ParseSensorShape(name);
+    options.rig.shape.shape = ParseSensorShape(name);
     const auto rig = std::make_shared<const SimRig>(options);
     TactileCamera camera(rig);
     const cv::Mat fins = SimGroundTruth::FinMask(camera);
@@ -472,7 +472,7 @@ TEST_CASE("tactile camera: every built-in shape and a loaded mesh render", "[sim
       std::filesystem::path(GS360_BINARY_DIR) / "sim_camera_test_cone.stl";
   WriteMesh(path, MakeSensorMesh(cone));
   SimRigOptions options;
-  options.mesh_path = path.string();
+  options.rig.mesh_path = path.string();
   const auto rig = std::make_shared<const SimRig>(options);
   TactileCamera camera(rig);
   const double fraction = double(cv::countNonZero(SimGroundTruth::FinMask(camera))) /

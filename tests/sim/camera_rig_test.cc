@@ -23,7 +23,7 @@ TEST_CASE("rig: the true camera differs from the nominal one by the stated amoun
   // Camera centres (sensor frame) 0.3 mm apart; orientations 1 deg apart.
   const Eigen::Vector3d c_nominal = nominal.Inverse().translation;
   const Eigen::Vector3d c_true = truth.Inverse().translation;
-  CHECK(c_nominal.isApprox(Eigen::Vector3d(0.0, 0.0, options.camera_z)));
+  CHECK(c_nominal.isApprox(Eigen::Vector3d(0.0, 0.0, options.rig.camera_z)));
   CHECK((c_true - c_nominal).norm() == Approx(options.perturbation.translation_mm).margin(1e-12));
   CHECK(RotationDifferenceRad(nominal, truth) ==
         Approx(Deg(options.perturbation.rotation_deg)).margin(1e-9));
@@ -54,15 +54,15 @@ TEST_CASE("rig: the true camera differs from the nominal one by the stated amoun
 
 TEST_CASE("rig: machine and sensor positions of the ball", "[sim][camera]") {
   SimRigOptions options;
-  options.machine_from_sensor =
-      Rigid3d::FromAxisAngle(Eigen::Vector3d::UnitZ(), 0.3, Eigen::Vector3d(-90.0, -110.0, -140.0));
-  options.tool_offset = Eigen::Vector3d(0.5, -0.2, -38.0);
+  options.rig.base_in_machine = Eigen::Vector3d(-90.0, -110.0, -140.0);
+  options.rig.tool_offset = Eigen::Vector3d(0.5, -0.2, -38.0);
   const SimRig rig(options);
   const Eigen::Vector3d ball(3.0, -4.0, 12.0);
   const Eigen::Vector3d machine = rig.MachinePositionForBall(ball);
   CHECK((rig.BallCenterSensor(machine) - ball).norm() < 1e-12);
   // Ball centre = machine position + tool offset, in the machine frame.
-  CHECK(((machine + options.tool_offset) - options.machine_from_sensor * ball).norm() < 1e-12);
+  CHECK(((machine + options.rig.tool_offset) - options.rig.machine_from_sensor() * ball).norm() <
+        1e-12);
   // The default mount keeps the sensor inside the negative travel of a CNC homed at 0.
   const SimRigOptions defaults;
   const SimRig default_rig(defaults);
@@ -77,10 +77,10 @@ TEST_CASE("rig: options are checked, naming the field", "[sim][camera]") {
   // -Wmaybe-uninitialized on the nested spline control-point vector of a temporary.)
   const SimRigOptions defaults;
   SimRigOptions bad = defaults;
-  bad.camera_z = 2.0;  // above the fins' bottom edge
+  bad.rig.camera_z = 2.0;  // above the fins' bottom edge
   CHECK_THROWS_WITH(bad.Check(), Catch::Contains("camera_z"));
   bad = defaults;
-  bad.ball_radius = 0.0;
+  bad.rig.ball_radius = 0.0;
   CHECK_THROWS_WITH(bad.Check(), Catch::Contains("ball_radius"));
   bad = defaults;
   bad.perturbation.rotation_deg = -1.0;
@@ -89,14 +89,14 @@ TEST_CASE("rig: options are checked, naming the field", "[sim][camera]") {
   bad.perturbation.k1 = 0.5;  // folds the lens inside 80 deg
   CHECK_THROWS_AS(SimRig(bad), std::invalid_argument);
   bad = defaults;
-  bad.mesh_path = "/nonexistent/finger.stl";
+  bad.rig.mesh_path = "/nonexistent/finger.stl";
   CHECK_THROWS_AS(SimRig(bad), MeshError);
 }
 
 TEST_CASE("lighting: LED layout, fin shadows and per-channel shading", "[sim][camera]") {
   const SensorShapeOptions shape;
   const auto profile = MakeProfile(shape);
-  const FinOptions fins = SimRigOptions::DefaultFins();
+  const FinOptions fins = RigConfig::DefaultFins();
   const LightingOptions options;
   const Lighting lighting(options, *profile, fins);
   int per_channel[3] = {0, 0, 0};

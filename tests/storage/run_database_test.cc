@@ -491,6 +491,62 @@ TEST_CASE("models: stored once per name and version, checksum verified", "[stora
   CHECK(list[1].blob.empty());
 }
 
+TEST_CASE("last_error is kept until the run runs again, and DeleteRun removes a run whole",
+          "[storage][db]") {
+  test::TempDir dir;
+  RunDatabase db(dir / "rig.gs360db");
+  const std::int64_t run = db.CreateRun("{}", "h");
+  const std::int64_t other = db.CreateRun("{}", "h");
+  const std::vector<std::int64_t> ids = db.InsertPlan(run, MakePlan(3));
+  db.InsertPlan(other, MakePlan(2));
+  db.SetRunState(run, RunState::kRunning);
+  db.CommitCapture(ids[0], test::NoisyFrame(3, 64, 48), Report(10.0));
+  db.AddReferenceFrame(run, test::NoisyFrame(4, 64, 48), 9.0);
+  db.PutArtifact(run, "pose", "k", std::vector<std::uint8_t>{1, 2, 3});
+  const std::vector<std::uint8_t> bundle(100, 7);
+  db.PutModel("m", "1", bundle, "{}", run);
+
+  db.SetRunState(run, RunState::kInterrupted);
+  db.SetRunError(run, "ALARM:1 (hard limit)");
+  CHECK(db.GetRun(run)->last_error == "ALARM:1 (hard limit)");
+  const auto events = db.ListEvents(run);
+  REQUIRE_FALSE(events.empty());
+  CHECK(events.back().level == EventLevel::kError);
+  // The state change's event says what changed in its data.
+  bool saw_state = false;
+  for (const EventRecord& e : events) {
+    if (e.data_json.find(R"("state":"interrupted")") != std::string::npos) saw_state = true;
+  }
+  CHECK(saw_state);
+
+  // A running run cannot be deleted; then running again clears the error.
+  db.SetRunState(run, RunState::kRunning);
+  CHECK(db.GetRun(run)->last_error.empty());
+  try {
+    db.DeleteRun(run);
+    FAIL("expected StorageError");
+  } catch (const StorageError& e) {
+    CHECK(e.code() == StorageErrc::kInvalidState);
+  }
+  db.SetRunState(run, RunState::kPaused);
+  db.DeleteRun(run);
+  CHECK_FALSE(db.GetRun(run));
+  CHECK(db.ListProbes(run).empty());
+  CHECK(db.ListFrames(run, FrameKind::kReference).empty());
+  CHECK(db.ListArtifacts(run).empty());
+  CHECK(db.ListEvents(run).empty());
+  // The model survives, detached; the other run is untouched.
+  REQUIRE(db.GetModel("m", "1"));
+  CHECK_FALSE(db.GetModel("m", "1")->run_id);
+  CHECK(db.CountProbes(other).total == 2);
+  try {
+    db.DeleteRun(run);
+    FAIL("expected StorageError");
+  } catch (const StorageError& e) {
+    CHECK(e.code() == StorageErrc::kNotFound);
+  }
+}
+
 TEST_CASE("RunDatabaseOptions::Check names the field and the value", "[storage][db]") {
   CHECK_NOTHROW(RunDatabaseOptions{}.Check());
   RunDatabaseOptions o;

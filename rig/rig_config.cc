@@ -1,13 +1,11 @@
-#include "daemon/rig_config.h"
+#include "rig/rig_config.h"
 
 #include <cmath>
 #include <stdexcept>
 
 #include <nlohmann/json.hpp>
 
-#include "daemon/json_reader.h"
-#include "geometry/bvh.h"
-#include "geometry/mesh.h"
+#include "base/json_reader.h"
 
 namespace gs360 {
 namespace {
@@ -24,7 +22,7 @@ nlohmann::json Vec(const Eigen::Vector3d& v) {
 
 }  // namespace
 
-FinOptions RigConfig::DefaultFinOptions() {
+FinOptions RigConfig::DefaultFins() {
   FinOptions fins;
   fins.thickness = 0.45;
   fins.inset = 1.5;
@@ -56,47 +54,29 @@ void RigConfig::Check() const {
     throw std::invalid_argument("RigConfig.ball_radius must be in (0, 50) mm, got " +
                                 std::to_string(ball_radius));
   }
+  if (!(gel_thickness > 0.0 && gel_thickness < 50.0)) {
+    throw std::invalid_argument("RigConfig.gel_thickness must be in (0, 50) mm, got " +
+                                std::to_string(gel_thickness));
+  }
 }
 
-RigGeometry MakeRigGeometry(const RigConfig& config) {
-  config.Check();
-  RigGeometry rig;
-  std::shared_ptr<const RevolutionProfile> fin_profile;
-  if (config.mesh_path.empty()) {
-    rig.profile = MakeProfile(config.shape);
-    rig.sensor_mesh = MakeRevolutionMesh(*rig.profile, config.shape.tessellation);
-    fin_profile = rig.profile;
-  } else {
-    MeshReport report;
-    rig.sensor_mesh = LoadMesh(config.mesh_path, MeshLoadOptions{}, &report);
-    // The fins follow the inner wall; for a mesh, a profile inscribed in it (the planner keeps
-    // using the mesh itself for visibility and collisions).
-    const Bvh bvh(rig.sensor_mesh);
-    fin_profile = MakeSplineProfile(FitInscribedProfile(bvh, 24));
-  }
-  rig.fins = MakeFins(config.fins, *fin_profile);
-  rig.camera = config.camera;
-  rig.cam_from_sensor = config.cam_from_sensor();
-  rig.machine_from_sensor = config.machine_from_sensor();
-  rig.tool_offset = config.tool_offset;
-  rig.Check();
-  return rig;
+nlohmann::json SensorShapeToJson(const SensorShapeOptions& shape) {
+  nlohmann::json spline = nlohmann::json::array();
+  for (const auto& p : shape.spline.control_points) spline.push_back({p.x(), p.y()});
+  return {{"type", std::string(SensorShapeName(shape.shape))},
+          {"cylinder", {{"radius", shape.cylinder.radius}, {"height", shape.cylinder.height}}},
+          {"cone",
+           {{"base_radius", shape.cone.base_radius},
+            {"height", shape.cone.height},
+            {"tip_radius", shape.cone.tip_radius}}},
+          {"spline", {{"control_points", spline}}},
+          {"segments", shape.tessellation.segments},
+          {"rings", shape.tessellation.rings}};
 }
 
 nlohmann::json RigConfigToJson(const RigConfig& c) {
-  nlohmann::json spline = nlohmann::json::array();
-  for (const auto& p : c.shape.spline.control_points) spline.push_back({p.x(), p.y()});
   return {
-      {"shape",
-       {{"type", std::string(SensorShapeName(c.shape.shape))},
-        {"cylinder", {{"radius", c.shape.cylinder.radius}, {"height", c.shape.cylinder.height}}},
-        {"cone",
-         {{"base_radius", c.shape.cone.base_radius},
-          {"height", c.shape.cone.height},
-          {"tip_radius", c.shape.cone.tip_radius}}},
-        {"spline", {{"control_points", spline}}},
-        {"segments", c.shape.tessellation.segments},
-        {"rings", c.shape.tessellation.rings}}},
+      {"shape", SensorShapeToJson(c.shape)},
       {"mesh_path", c.mesh_path},
       {"fins",
        {{"thickness", c.fins.thickness},
@@ -117,44 +97,45 @@ nlohmann::json RigConfigToJson(const RigConfig& c) {
       {"base_in_machine", Vec(c.base_in_machine)},
       {"tool_offset", Vec(c.tool_offset)},
       {"ball_radius", c.ball_radius},
+      {"gel_thickness", c.gel_thickness},
   };
 }
 
-RigConfig RigConfigFromJson(const nlohmann::json& json, const std::string& where) {
-  RigConfig c;
-  JsonReader r(json, where, "rig");
-  r.Object("shape", [&](JsonReader& s) {
-    std::string type(SensorShapeName(c.shape.shape));
-    s.Get("type", type);
-    try {
-      c.shape.shape = ParseSensorShape(type);
-    } catch (const std::exception& e) {
-      s.Fail("type", e.what());
-    }
-    s.Object("cylinder", [&](JsonReader& o) {
-      o.Get("radius", c.shape.cylinder.radius);
-      o.Get("height", c.shape.cylinder.height);
-    });
-    s.Object("cone", [&](JsonReader& o) {
-      o.Get("base_radius", c.shape.cone.base_radius);
-      o.Get("height", c.shape.cone.height);
-      o.Get("tip_radius", c.shape.cone.tip_radius);
-    });
-    s.Object("spline", [&](JsonReader& o) {
-      if (const auto* pts = o.Raw("control_points")) {
-        if (!pts->is_array()) o.Fail("control_points", "expected [[z, r], ...]");
-        c.shape.spline.control_points.clear();
-        for (const auto& p : *pts) {
-          if (!p.is_array() || p.size() != 2 || !p[0].is_number() || !p[1].is_number()) {
-            o.Fail("control_points", "expected [[z, r], ...], got element " + p.dump());
-          }
-          c.shape.spline.control_points.emplace_back(p[0].get<double>(), p[1].get<double>());
-        }
-      }
-    });
-    s.Get("segments", c.shape.tessellation.segments);
-    s.Get("rings", c.shape.tessellation.rings);
+void ReadSensorShape(JsonReader& s, SensorShapeOptions& shape) {
+  std::string type(SensorShapeName(shape.shape));
+  s.Get("type", type);
+  try {
+    shape.shape = ParseSensorShape(type);
+  } catch (const std::exception& e) {
+    s.Fail("type", e.what());
+  }
+  s.Object("cylinder", [&](JsonReader& o) {
+    o.Get("radius", shape.cylinder.radius);
+    o.Get("height", shape.cylinder.height);
   });
+  s.Object("cone", [&](JsonReader& o) {
+    o.Get("base_radius", shape.cone.base_radius);
+    o.Get("height", shape.cone.height);
+    o.Get("tip_radius", shape.cone.tip_radius);
+  });
+  s.Object("spline", [&](JsonReader& o) {
+    if (const auto* pts = o.Raw("control_points")) {
+      if (!pts->is_array()) o.Fail("control_points", "expected [[z, r], ...]");
+      shape.spline.control_points.clear();
+      for (const auto& p : *pts) {
+        if (!p.is_array() || p.size() != 2 || !p[0].is_number() || !p[1].is_number()) {
+          o.Fail("control_points", "expected [[z, r], ...], got element " + p.dump());
+        }
+        shape.spline.control_points.emplace_back(p[0].get<double>(), p[1].get<double>());
+      }
+    }
+  });
+  s.Get("segments", shape.tessellation.segments);
+  s.Get("rings", shape.tessellation.rings);
+}
+
+void ReadRigConfig(JsonReader& r, RigConfig& c) {
+  r.Object("shape", [&](JsonReader& s) { ReadSensorShape(s, c.shape); });
   r.Get("mesh_path", c.mesh_path);
   r.Object("fins", [&](JsonReader& o) {
     o.Get("thickness", c.fins.thickness);
@@ -172,7 +153,11 @@ RigConfig RigConfigFromJson(const nlohmann::json& json, const std::string& where
     o.Get("skew", c.camera.skew);
     if (const auto* k = o.Raw("k")) {
       if (!k->is_array() || k->size() != 4) o.Fail("k", "expected [k1, k2, k3, k4]");
-      for (int i = 0; i < 4; ++i) c.camera.k[i] = (*k)[static_cast<std::size_t>(i)].get<double>();
+      for (int i = 0; i < 4; ++i) {
+        const auto& v = (*k)[static_cast<std::size_t>(i)];
+        if (!v.is_number()) o.Fail("k", "expected [k1, k2, k3, k4], got " + k->dump());
+        c.camera.k[i] = v.get<double>();
+      }
     }
     o.Get("max_theta", c.camera.max_theta);
     o.Get("camera_z", c.camera_z);
@@ -180,11 +165,18 @@ RigConfig RigConfigFromJson(const nlohmann::json& json, const std::string& where
   r.Get("base_in_machine", c.base_in_machine);
   r.Get("tool_offset", c.tool_offset);
   r.Get("ball_radius", c.ball_radius);
+  r.Get("gel_thickness", c.gel_thickness);
+}
+
+RigConfig RigConfigFromJson(const nlohmann::json& json, const std::string& where) {
+  RigConfig c;
+  JsonReader r(json, where, "rig");
+  ReadRigConfig(r, c);
   r.RejectUnknown();
   try {
     c.Check();
   } catch (const std::invalid_argument& e) {
-    throw ConfigError(where + ": rig: " + e.what());
+    throw ConfigError(where + ": rig: " + e.what(), "rig");
   }
   return c;
 }

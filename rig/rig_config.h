@@ -1,16 +1,19 @@
 #pragma once
-// The rig as the user describes it: the sensor (a built-in shape or a mesh file), the LED fins,
-// the NOMINAL camera (intrinsics and CAD pose), the mount on the machine and the probe's tool
-// offset. Production code only ever sees these nominal values; calibration estimates the truth.
+// The rig, described once: the sensor (a built-in shape or a mesh file), the LED fins, the
+// NOMINAL camera (intrinsics and CAD pose), the mount on the machine, the probe's tool offset and
+// ball. Planning (gcode/plan.h MakeRigGeometry), the run and daemon configurations and the
+// virtual rig (sim/rig_model.h, which adds its hidden truth on top) all take this struct; its
+// defaults here are the only ones. Production code only ever sees these nominal values;
+// calibration estimates the truth.
 //
-// Frames: sensor (S), camera (C, OpenCV), machine (M, GRBL MPos). Units: mm, rad.
+// Frames: sensor (S: origin at the centre of the base plane, +z along the finger axis), camera
+// (C, OpenCV), machine (M, GRBL MPos). Units: mm, rad.
 
 #include <Eigen/Core>
 #include <string>
 
 #include <nlohmann/json_fwd.hpp>
 
-#include "gcode/plan.h"
 #include "geometry/fisheye.h"
 #include "geometry/rigid3.h"
 #include "geometry/shapes.h"
@@ -20,7 +23,7 @@ namespace gs360 {
 struct RigConfig {
   SensorShapeOptions shape;  // built-in sensor (ignored when mesh_path is set)
   std::string mesh_path;     // STL / OBJ / PLY in the sensor frame, mm (optional)
-  FinOptions fins = DefaultFinOptions();
+  FinOptions fins = DefaultFins();
   FisheyeIntrinsics camera = FisheyeIntrinsics::Default160();
   // Nominal camera: on the sensor axis at z = camera_z (below the fins' bottom edge), looking +z,
   // camera x = sensor x, camera y = sensor y.
@@ -33,22 +36,29 @@ struct RigConfig {
   // Ball centre (machine frame) = machine position (MPos) + tool_offset.
   Eigen::Vector3d tool_offset{0.0, 0.0, -50.0};
   double ball_radius = 2.0;
+  // The gel layer over the rigid shell (mm): no press may go this deep.
+  double gel_thickness = 1.5;
 
-  static FinOptions DefaultFinOptions();
+  // Fins 0.45 mm thick (board and LEDs), 1.5 mm inside the outer surface (gel and shell), from
+  // z = 1.5 mm up: the camera at z = -1.5 sits 3 mm below their bottom edge.
+  static FinOptions DefaultFins();
   Rigid3d cam_from_sensor() const;
   Rigid3d machine_from_sensor() const;
   // Throws std::invalid_argument naming the field and its value.
   void Check() const;
 };
 
-// The planner's view of the rig: the mesh (loaded or built), the exact profile of a built-in
-// shape (for a mesh: a fitted profile for the fins only), fins, nominal camera, mount. Throws
-// MeshError for an unreadable mesh file.
-RigGeometry MakeRigGeometry(const RigConfig& config);
+class JsonReader;
 
 // JSON round trip. FromJson rejects unknown keys and wrong types, naming `where` (a file name)
 // and the field path, e.g. "rig.json: rig.shape.cylinder.radius: expected a number".
 nlohmann::json RigConfigToJson(const RigConfig& config);
 RigConfig RigConfigFromJson(const nlohmann::json& json, const std::string& where);
+// Reads the keys present into `config` (absent keys keep its values); no Check(). For readers of
+// larger documents (the run and daemon configurations).
+void ReadRigConfig(JsonReader& reader, RigConfig& config);
+// The "shape" object alone (type, cylinder, cone, spline, segments, rings).
+void ReadSensorShape(JsonReader& reader, SensorShapeOptions& shape);
+nlohmann::json SensorShapeToJson(const SensorShapeOptions& shape);
 
 }  // namespace gs360

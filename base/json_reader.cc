@@ -1,4 +1,4 @@
-#include "daemon/json_reader.h"
+#include "base/json_reader.h"
 
 #include <cmath>
 #include <fstream>
@@ -7,11 +7,26 @@
 
 namespace gs360 {
 
-JsonReader::JsonReader(const nlohmann::json& json, std::string where, std::string path)
-    : json_(json), where_(std::move(where)), path_(std::move(path)) {
+std::string WhereField(const std::string& where, const SourceLines* lines, const std::string& path) {
+  if (lines == nullptr) return where;
+  std::string p = path;
+  for (;;) {
+    const auto it = lines->find(p);
+    if (it != lines->end()) return where + ":" + std::to_string(it->second);
+    const auto dot = p.rfind('.');
+    if (p.empty()) return where;
+    p = dot == std::string::npos ? std::string() : p.substr(0, dot);
+  }
+}
+
+JsonReader::JsonReader(const nlohmann::json& json, std::string where, std::string path,
+                       const SourceLines* lines)
+    : json_(json), where_(std::move(where)), path_(std::move(path)), lines_(lines) {
   if (!json_.is_object()) {
-    throw ConfigError(where_ + ": " + (path_.empty() ? std::string("the configuration") : path_) +
-                      ": expected an object, got " + json_.type_name());
+    throw ConfigError(WhereField(where_, lines_, path_) + ": " +
+                          (path_.empty() ? std::string("the configuration") : path_) +
+                          ": expected an object, got " + json_.type_name(),
+                      path_);
   }
 }
 
@@ -20,7 +35,8 @@ std::string JsonReader::FieldPath(const std::string& key) const {
 }
 
 void JsonReader::Fail(const std::string& key, const std::string& what) const {
-  throw ConfigError(where_ + ": " + FieldPath(key) + ": " + what);
+  const std::string field = FieldPath(key);
+  throw ConfigError(WhereField(where_, lines_, field) + ": " + field + ": " + what, field);
 }
 
 const nlohmann::json* JsonReader::Find(const char* key) {
@@ -51,6 +67,17 @@ void JsonReader::Get(const char* key, int& out) {
     Fail(key, "integer out of range: " + v->dump());
   }
   out = static_cast<int>(i);
+}
+
+void JsonReader::Get(const char* key, std::int64_t& out) {
+  const auto* v = Find(key);
+  if (!v) return;
+  if (!v->is_number_integer()) Fail(key, std::string("expected an integer, got ") + v->dump());
+  if (v->is_number_unsigned() &&
+      v->get<std::uint64_t>() > static_cast<std::uint64_t>(std::numeric_limits<std::int64_t>::max())) {
+    Fail(key, "integer out of range: " + v->dump());
+  }
+  out = v->get<std::int64_t>();
 }
 
 void JsonReader::Get(const char* key, std::uint64_t& out) {
@@ -89,11 +116,40 @@ void JsonReader::Get(const char* key, Eigen::Vector3d& out) {
   }
 }
 
+void JsonReader::Get(const char* key, std::vector<double>& out) {
+  const auto* v = Find(key);
+  if (!v) return;
+  if (!v->is_array()) Fail(key, "expected a list of numbers, got " + v->dump());
+  std::vector<double> values;
+  for (const auto& e : *v) {
+    if (!e.is_number() || !std::isfinite(e.get<double>())) {
+      Fail(key, "expected a list of finite numbers, got " + v->dump());
+    }
+    values.push_back(e.get<double>());
+  }
+  out = std::move(values);
+}
+
+void JsonReader::Get(const char* key, std::vector<int>& out) {
+  const auto* v = Find(key);
+  if (!v) return;
+  if (!v->is_array()) Fail(key, "expected a list of integers, got " + v->dump());
+  std::vector<int> values;
+  for (const auto& e : *v) {
+    if (!e.is_number_integer() || e.get<long long>() < std::numeric_limits<int>::min() ||
+        e.get<long long>() > std::numeric_limits<int>::max()) {
+      Fail(key, "expected a list of integers, got " + v->dump());
+    }
+    values.push_back(e.get<int>());
+  }
+  out = std::move(values);
+}
+
 void JsonReader::Object(const char* key, const std::function<void(JsonReader&)>& read) {
   const auto* v = Find(key);
   if (!v) return;
   if (!v->is_object()) Fail(key, std::string("expected an object, got ") + v->type_name());
-  JsonReader child(*v, where_, FieldPath(key));
+  JsonReader child(*v, where_, FieldPath(key), lines_);
   read(child);
   child.RejectUnknown();
 }
