@@ -7,7 +7,8 @@
 
 namespace gs360 {
 
-std::string WhereField(const std::string& where, const SourceLines* lines, const std::string& path) {
+std::string WhereField(const std::string& where, const SourceLines* lines,
+                       const std::string& path) {
   if (lines == nullptr) return where;
   std::string p = path;
   for (;;) {
@@ -74,7 +75,8 @@ void JsonReader::Get(const char* key, std::int64_t& out) {
   if (!v) return;
   if (!v->is_number_integer()) Fail(key, std::string("expected an integer, got ") + v->dump());
   if (v->is_number_unsigned() &&
-      v->get<std::uint64_t>() > static_cast<std::uint64_t>(std::numeric_limits<std::int64_t>::max())) {
+      v->get<std::uint64_t>() >
+          static_cast<std::uint64_t>(std::numeric_limits<std::int64_t>::max())) {
     Fail(key, "integer out of range: " + v->dump());
   }
   out = v->get<std::int64_t>();

@@ -4,9 +4,9 @@
 #include <cstdio>
 #include <thread>
 
+#include "base/json_reader.h"
 #include "cli/commands.h"
 #include "cli/sim_bridge.h"
-#include "base/json_reader.h"
 #include "rig/rig_config.h"
 #include "sim/virtual_cnc.h"
 #include "sim/virtual_rig.h"

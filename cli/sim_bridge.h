@@ -6,8 +6,8 @@
 #include <filesystem>
 #include <memory>
 
-#include "rig/rig_config.h"
 #include "daemon/run_config.h"
+#include "rig/rig_config.h"
 #include "sim/virtual_rig.h"
 
 namespace gs360::cli {

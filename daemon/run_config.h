@@ -9,8 +9,8 @@
 
 #include "capture/capture_press.h"
 #include "capture/frame_source.h"
-#include "rig/rig_config.h"
 #include "gcode/plan.h"
+#include "rig/rig_config.h"
 
 namespace gs360 {
 

@@ -11,10 +11,10 @@
 #include <spdlog/spdlog.h>
 #include <nlohmann/json.hpp>
 
+#include "base/json_reader.h"
 #include "capture/capture_press.h"
 #include "capture/frame_source.h"
 #include "capture/impression.h"
-#include "base/json_reader.h"
 #include "gcode/grbl_client.h"
 #include "gcode/probe_program.h"
 #include "geometry/hash.h"

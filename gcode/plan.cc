@@ -10,10 +10,10 @@
 #include <unordered_map>
 
 #include "gcode/tour.h"
-#include "rig/rig_shape.h"
 #include "geometry/bvh.h"
 #include "geometry/hash.h"
 #include "geometry/sampling.h"
+#include "rig/rig_shape.h"
 
 namespace gs360 {
 namespace {

@@ -923,11 +923,11 @@ void RunDatabase::SetRunState(std::int64_t run_id, RunState state) {
     Stmt clear = c.Prepare("UPDATE runs SET last_error = '' WHERE id = ?");
     clear.Int(1, run_id).Run();
   }
-  c.AddEvent(run_id, EventLevel::kInfo,
-             "run state " + std::string(ToString(run->state)) + " -> " +
-                 std::string(ToString(state)),
-             "{\"from\":\"" + std::string(ToString(run->state)) + "\",\"state\":\"" +
-                 std::string(ToString(state)) + "\"}");
+  c.AddEvent(
+      run_id, EventLevel::kInfo,
+      "run state " + std::string(ToString(run->state)) + " -> " + std::string(ToString(state)),
+      "{\"from\":\"" + std::string(ToString(run->state)) + "\",\"state\":\"" +
+          std::string(ToString(state)) + "\"}");
   tx.Commit();
 }
 
