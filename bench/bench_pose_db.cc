@@ -186,8 +186,8 @@ int main(int argc, char** argv) {
     RunDatabaseOptions ro;
     ro.read_only = true;
     RunDatabase db(db_path, ro);
-    const RunConfig config = cli::StoredRunConfig(db, run_id);
-    const CalibrationInputs inputs = cli::CalibrationInputsFor(config);
+    const RunConfig config = StoredRunConfig(db, run_id);
+    const CalibrationInputs inputs = CalibrationInputsFor(config);
     auto rig = std::make_shared<const SimRig>(cli::SimRigOptionsFor(config.rig, seed));
     const FisheyeCamera true_camera = SimGroundTruth::TrueCamera(*rig);
     const Rigid3d true_pose = SimGroundTruth::TrueCamFromSensor(*rig);

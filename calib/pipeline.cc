@@ -770,7 +770,7 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
   {
     Hasher h;
     const ValidationOptions& vo = options.validation;
-    h.Add("validate/3").Add(train_key).Add(map_key).Add(dataset_key);
+    h.Add("validate/4").Add(train_key).Add(map_key).Add(dataset_key);
     h.Add(ReconstructionOptionsToJson(options.reconstruction).dump());
     h.AddPod(vo.max_probes).AddDouble(vo.fin_near_mm).AddPod(vo.examples);
     h.Add(truth != nullptr ? truth->Describe() : std::string("no truth"));
@@ -802,6 +802,13 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
       ValidationResult v = Validate(reconstructor, held_out, load, inputs.ball_radius, height,
                                     truth, options.validation);
       v.report["pose"] = pose_metrics;
+      // Per evaluated probe: contact point (sensor frame, mm) and mean depth error (mm), for
+      // error maps outside the HTML report (the daemon's dashboard).
+      Json probe_errors = Json::array();
+      for (const auto& [point, error] : v.probe_errors) {
+        probe_errors.push_back({point.x(), point.y(), point.z(), error});
+      }
+      v.report["probe_errors"] = probe_errors;
       ReportInputs ri;
       ri.title = "gs360 calibration: run " + std::to_string(run_id) + " (" + inputs.sensor + ")";
       ri.validation = v.report;

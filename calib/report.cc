@@ -512,6 +512,47 @@ std::string FormatValidationTable(const nlohmann::json& validation) {
   return s.str();
 }
 
+Json ValidationTargets(const Json& v) {
+  const Json* truths = Find(v, "truths");
+  std::string truth = "rigid";
+  if (truths != nullptr && truths->is_array()) {
+    for (const auto& t : *truths) {
+      if (t == "physical") truth = "physical";
+    }
+  }
+  const Json* method = Find(v, "default_method");
+  const std::string m = method != nullptr && method->is_string() ? method->get<std::string>()
+                                                                 : std::string("heightfield");
+  const auto cell = [&](const char* band, const char* key) -> const Json* {
+    const Json* results = Find(v, "results");
+    if (results == nullptr || !results->contains(truth)) return nullptr;
+    const Json& by_method = results->at(truth);
+    if (!by_method.contains(m) || !by_method.at(m).contains(band)) return nullptr;
+    return Find(by_method.at(m).at(band), key);
+  };
+  Json out = Json::array();
+  const auto add = [&](const std::string& name, const Json* value, double target,
+                       const char* unit) {
+    const bool known = value != nullptr && value->is_number();
+    out.push_back({{"name", name},
+                   {"truth", truth},
+                   {"value", known ? *value : Json(nullptr)},
+                   {"target", target},
+                   {"unit", unit},
+                   {"pass", known && value->get<double>() <= target}});
+  };
+  add("mean depth error", cell("all", "mean_mm"), 0.030, "mm");
+  add("depth error seen > 50 deg", cell("view:>50", "mean_mm"), 0.050, "mm");
+  add("peak indentation error", cell("all", "peak_error_mm"), 0.050, "mm");
+  add("median normal error", cell("all", "median_normal_deg"), 3.0, "deg");
+  if (truth == "physical") {
+    const Json* pose = Find(v, "pose");
+    add("camera position", pose != nullptr ? Find(*pose, "error_mm") : nullptr, 0.05, "mm");
+    add("camera rotation", pose != nullptr ? Find(*pose, "error_deg") : nullptr, 0.05, "deg");
+  }
+  return out;
+}
+
 std::string RenderReportHtml(const ReportInputs& inputs) {
   const std::string title = inputs.title.empty() ? "gs360 calibration report" : inputs.title;
   std::ostringstream s;

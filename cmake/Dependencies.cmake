@@ -1,5 +1,6 @@
 # Finds gs360's dependencies and records what was found for the configure summary.
-# Core (required): Eigen, spdlog, SQLite, OpenCV, assimp, nlohmann-json, CLI11, Catch2 (tests).
+# Core (required): Eigen, spdlog, SQLite, OpenCV, assimp, nlohmann-json, CLI11, Catch2 (tests),
+# toml++, cpp-httplib and libsystemd (the daemon).
 # Optional backends: libcamera (capture), libserialport (real serial ports).
 
 find_package(PkgConfig REQUIRED)
@@ -24,6 +25,14 @@ find_package(nlohmann_json 3 REQUIRED)
 gs360_note("nlohmann-json" "${nlohmann_json_VERSION}")
 find_package(CLI11 REQUIRED)
 gs360_note("CLI11" "${CLI11_VERSION}")
+
+# The daemon: its configuration file, HTTP server, systemd notifications.
+find_package(tomlplusplus 3 REQUIRED)
+gs360_note("toml++" "${tomlplusplus_VERSION}")
+pkg_check_modules(HTTPLIB REQUIRED IMPORTED_TARGET cpp-httplib)
+gs360_note("cpp-httplib" "${HTTPLIB_VERSION}")
+pkg_check_modules(SYSTEMD REQUIRED IMPORTED_TARGET libsystemd)
+gs360_note("libsystemd" "${SYSTEMD_VERSION}")
 
 # FFTW3 (double): the DST-I behind the Poisson solver (recon/).
 pkg_check_modules(FFTW3 REQUIRED IMPORTED_TARGET fftw3)

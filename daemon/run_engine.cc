@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <future>
 #include <optional>
 #include <stdexcept>
@@ -42,6 +43,7 @@ enum class StepKind {
   kReset,         // the controller reset: everything in flight is void, position lost
   kDisconnected,  // the port vanished
   kStall,         // no sync ok within the timeout
+  kSafety,        // a line would break a safety limit: nothing of it was sent
 };
 
 struct Step {
@@ -99,6 +101,10 @@ class RunSession {
   std::optional<std::string> RecheckSensor();
   void Park();
   void SendRetract(const ProbeProgram& program, const PlannedProbe& planned);
+  // The lines that would break a safety limit, sent from `from` in order; nullopt when all pass
+  // (or no limits are set). Records the violation for the run loop to stop on.
+  std::optional<std::string> Unsafe(const std::vector<std::string>& lines,
+                                    const Eigen::Vector3d& from);
   // Bookkeeping.
   double ToUnix(Clock::time_point t) const {
     return std::chrono::duration<double>(t - steady_origin_).count() + unix_origin_;
@@ -119,7 +125,9 @@ class RunSession {
   SessionOverrides overrides_;
   RunConfig config_;
   ProbePlan plan_;
-  std::unique_ptr<TravelPlanner> travel_;
+  std::shared_ptr<TravelPlanner> travel_;
+  std::unique_ptr<SafetyGuard> guard_;
+  std::optional<std::string> safety_stop_;  // a refused line: the run stops after this probe
   std::unique_ptr<GrblClient> client_;
   std::unique_ptr<FrameSource> source_;
   ReferenceSchedule references_;
@@ -159,7 +167,11 @@ void RunSession::LoadRun() {
     config_.camera.uri = overrides_.camera_uri;
   }
   plan_ = RunEngine::LoadPlan(db_, run_id_);
-  travel_ = std::make_unique<TravelPlanner>(MakeRigGeometry(config_.rig), config_.plan);
+  travel_ = std::make_shared<TravelPlanner>(MakeRigGeometry(config_.rig), config_.plan);
+  if (engine_.limits_) {
+    guard_ = std::make_unique<SafetyGuard>(*engine_.limits_, travel_, config_.rig.ball_radius,
+                                           config_.rig.gel_thickness);
+  }
   references_.every_m_probes = config_.plan.reference_every;
   const ProbeCounts counts = db_.CountProbes(run_id_);
   if (counts.total != static_cast<std::int64_t>(plan_.probes.size())) {
@@ -231,6 +243,13 @@ void RunSession::Publish(const std::string& phase, int plan_index) {
   p.elapsed_s = status.elapsed_s;
   p.phase = phase;
   p.plan_index = plan_index;
+  if (client_) {
+    p.machine_connected = client_->Connected();
+    if (const auto sample = client_->LatestStatus()) {
+      p.machine_state = sample->status.state_text;
+      p.machine_position = sample->machine_position;
+    }
+  }
   const double remaining = static_cast<double>(p.counts.planned + p.counts.failed);
   if (recent_probe_s_ > 0.0) {
     p.probes_per_hour = 3600.0 / recent_probe_s_;
@@ -279,7 +298,29 @@ Step RunSession::Classify(const std::vector<GrblHandle>& handles) {
   return {StepKind::kOk, ""};
 }
 
+std::optional<std::string> RunSession::Unsafe(const std::vector<std::string>& lines,
+                                              const Eigen::Vector3d& from) {
+  if (!guard_) return std::nullopt;
+  Eigen::Vector3d at = from;
+  for (const std::string& line : lines) {
+    if (auto bad = guard_->CheckLine(line, at)) {
+      safety_stop_ = "refused to send '" + line + "': " + *bad;
+      return safety_stop_;
+    }
+    // Our motion lines are "G53 G0|G1 X.. Y.. Z.." with all three axes.
+    const auto x = line.find(" X");
+    if (line.rfind("G53 G", 0) == 0 && x != std::string::npos) {
+      double v[3];
+      if (std::sscanf(line.c_str() + x, " X%lf Y%lf Z%lf", &v[0], &v[1], &v[2]) == 3) {
+        at = Eigen::Vector3d(v[0], v[1], v[2]);
+      }
+    }
+  }
+  return std::nullopt;
+}
+
 Step RunSession::SendAndSync(const std::vector<std::string>& lines, Clock::time_point* sync_at) {
+  if (auto bad = Unsafe(lines, position_)) return {StepKind::kSafety, *bad};
   std::vector<GrblHandle> handles;
   handles.reserve(lines.size());
   for (const std::string& line : lines) handles.push_back(client_->Send(line));
@@ -354,6 +395,7 @@ Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference,
 }
 
 void RunSession::SendRetract(const ProbeProgram& program, const PlannedProbe& planned) {
+  if (Unsafe(program.retract, position_)) return;
   for (const std::string& line : program.retract) client_->Send(line);
   position_ = planned.retract_machine;
   at_retract_of_ = planned.plan_index;
@@ -367,8 +409,9 @@ void RunSession::ReturnToSafety(const PlannedProbe& planned) {
   if (status && status->machine_position) position_ = *status->machine_position;
   const TravelPlanner::Gaps gaps = travel_->ToolGaps(travel_->BallFromMachine(position_));
   if (gaps.Min() < config_.plan.travel_clearance * 0.5) {
-    const GrblReply r = client_->WaitForOk(client_->Send(MachineMoveLine(planned.approach_machine)),
-                                           Ms(config_.engine.sync_timeout_s));
+    const std::string line = MachineMoveLine(planned.approach_machine);
+    if (Unsafe({line}, position_)) return;
+    const GrblReply r = client_->WaitForOk(client_->Send(line), Ms(config_.engine.sync_timeout_s));
     if (r.Ok()) position_ = planned.approach_machine;
   }
   at_retract_of_ = -2;
@@ -467,6 +510,10 @@ void RunSession::Park() {
   }
   std::vector<std::string> lines = TravelLines(*path);
   lines.push_back(MachineMoveLine(plan_.start_machine));
+  if (auto bad = Unsafe(lines, position_)) {
+    Event(EventLevel::kError, "not parking: " + *bad);
+    return;
+  }
   for (const auto& line : lines) client_->Send(line);
   position_ = plan_.start_machine;
   client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
@@ -490,7 +537,12 @@ RunReport RunSession::Run() {
       client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
     }
     db_.SetRunState(run_id_, state);
-    Event(outcome == RunOutcome::kFailed ? EventLevel::kError : EventLevel::kInfo, message);
+    if (outcome == RunOutcome::kFailed) {
+      spdlog::error("run {}: {}", run_id_, message);
+      db_.SetRunError(run_id_, message);
+    } else {
+      Event(EventLevel::kInfo, message);
+    }
     report_.counts = db_.CountProbes(run_id_);
     report_.seconds = std::chrono::duration<double>(Clock::now() - session_start_).count();
     Publish("idle");
@@ -511,9 +563,15 @@ RunReport RunSession::Run() {
       case 2:
         return finish(RunOutcome::kPaused, RunState::kPaused, "paused");
       case 3:
-        return finish(RunOutcome::kCancelled, RunState::kCancelled, "cancelled");
+        Park();
+        return finish(RunOutcome::kCancelled, RunState::kCancelled,
+                      "cancelled; the captured probes are kept");
       default:
         break;
+    }
+    if (safety_stop_) {
+      return finish(RunOutcome::kFailed, RunState::kInterrupted,
+                    "safety limit: " + *safety_stop_ + ". Nothing of that line was sent.");
     }
     const auto probe = db_.NextPendingProbe(run_id_, config_.engine.max_attempts);
     if (!probe) break;
@@ -556,6 +614,9 @@ RunReport RunSession::Run() {
                           ": " + step.message +
                           ". Nothing moves until you check the machine; `resume` re-homes and "
                           "continues.");
+      case StepKind::kSafety:
+        return finish(RunOutcome::kFailed, RunState::kInterrupted,
+                      "safety limit: " + step.message + ". Nothing of that line was sent.");
       case StepKind::kReset:
       case StepKind::kDisconnected:
       case StepKind::kStall:
@@ -612,12 +673,24 @@ RunReport RunEngine::Wait() {
   return thread_report_;
 }
 
-std::int64_t RunEngine::CreateRun(const RunConfig& config, ProbePlan* plan_out) {
+ProbePlan RunEngine::PlanRun(const RunConfig& config, const SafetyLimits* limits) {
   config.Check();
   const RigGeometry rig = MakeRigGeometry(config.rig);
-  const ProbePlan plan = MakeProbePlan(rig, config.plan);
+  ProbePlan plan = MakeProbePlan(rig, config.plan);
   CheckTravel(plan, config.plan.machine, config.plan.travel_limit_margin);
+  if (limits != nullptr) {
+    const SafetyGuard guard(*limits, std::make_shared<TravelPlanner>(rig, config.plan),
+                            config.rig.ball_radius, config.rig.gel_thickness);
+    if (auto bad = guard.CheckPlan(plan, config.plan)) {
+      throw ConfigError("the plan breaks a safety limit at " + *bad, "plan");
+    }
+  }
+  return plan;
+}
+
+std::int64_t RunEngine::StoreRun(const RunConfig& config, const ProbePlan& plan) {
   RunDatabase db(database_);
+  const RigGeometry rig = MakeRigGeometry(config.rig);
   const std::int64_t run_id =
       db.CreateRun(RunConfigToJson(config).dump(), ToHex64(rig.sensor_mesh.Hash()), config.name);
   std::vector<ProbePlanEntry> entries;
@@ -635,8 +708,19 @@ std::int64_t RunEngine::CreateRun(const RunConfig& config, ProbePlan* plan_out) 
                  "planned " + std::to_string(plan.probes.size()) + " probes of " +
                      std::to_string(plan.candidates) + " candidates; estimated " +
                      FormatFixed(plan.estimate.Hours(), 2) + " h");
-  if (plan_out) *plan_out = plan;
   return run_id;
+}
+
+std::int64_t RunEngine::CreateRun(const RunConfig& config, ProbePlan* plan_out) {
+  ProbePlan plan = PlanRun(config, limits_ ? &*limits_ : nullptr);
+  const std::int64_t run_id = StoreRun(config, plan);
+  if (plan_out) *plan_out = std::move(plan);
+  return run_id;
+}
+
+void RunEngine::SetSafetyLimits(const SafetyLimits& limits) {
+  limits.Check();
+  limits_ = limits;
 }
 
 ProbePlan RunEngine::LoadPlan(const RunDatabase& db, std::int64_t run_id) {

@@ -20,7 +20,10 @@
 // - an alarm (limit, abort): the machine is left alone, the run becomes `interrupted` with the
 //   alarm's text; Execute() returns kFailed;
 // - RequestStop() (SIGTERM), RequestPause(), RequestCancel(): the current probe is finished,
-//   retracted and committed first; the run becomes interrupted / paused / cancelled.
+//   retracted and committed first; the run becomes interrupted / paused / cancelled (a cancelled
+//   run also parks the tool at the plan's start position);
+// - a line that breaks the safety limits (SetSafetyLimits, daemon/safety.h): it is not sent, the
+//   run stops (interrupted, kFailed) naming the line and the limit.
 // Nothing committed is ever lost or probed again. On resume, Execute() first re-presses up to
 // engine.recheck_probes committed probes and compares their impression centres with the stored
 // frames; if the sensor has moved it refuses to continue (kFailed, with the measured shift).
@@ -35,10 +38,12 @@
 #include <filesystem>
 #include <functional>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <thread>
 
 #include "daemon/run_config.h"
+#include "daemon/safety.h"
 #include "gcode/plan.h"
 #include "storage/run_database.h"
 
@@ -55,6 +60,11 @@ struct RunProgress {
   double probes_per_hour = 0.0;  // recent rate of this session
   int plan_index = -1;           // probe in progress
   std::string phase;             // connecting, homing, rechecking, probing, parking, idle
+  // The controller as last seen (status reports): connected, GRBL state ("Idle", "Run", "Alarm",
+  // ...; empty when unknown) and machine position (MPos, mm).
+  bool machine_connected = false;
+  std::string machine_state;
+  std::optional<Eigen::Vector3d> machine_position;
 };
 
 struct RunReport {
@@ -85,10 +95,19 @@ class RunEngine {
   RunEngine(const RunEngine&) = delete;
   RunEngine& operator=(const RunEngine&) = delete;
 
-  // Validates the config, plans, stores run + plan (probe rows and the full plan as the
-  // "plan" artifact). No motion. Throws ConfigError / std::invalid_argument / StorageError /
-  // std::runtime_error (nothing reachable). `plan_out` receives the plan if given.
+  // Validates the config and plans; with `limits`, every line of the plan is checked against them
+  // (SafetyGuard::CheckPlan). No motion, nothing stored. Throws ConfigError (a limit broken,
+  // naming the probe and the limit) / std::invalid_argument / MeshError / std::runtime_error
+  // (nothing reachable).
+  static ProbePlan PlanRun(const RunConfig& config, const SafetyLimits* limits = nullptr);
+  // Stores run + plan (probe rows and the full plan as the "plan" artifact). Throws StorageError.
+  std::int64_t StoreRun(const RunConfig& config, const ProbePlan& plan);
+  // PlanRun (with the limits set by SetSafetyLimits, if any) then StoreRun. `plan_out` receives
+  // the plan if given.
   std::int64_t CreateRun(const RunConfig& config, ProbePlan* plan_out = nullptr);
+
+  // Limits every line sent from now on is checked against (default: none). Call before Start().
+  void SetSafetyLimits(const SafetyLimits& limits);
 
   // Runs or resumes `run_id` until it ends, is paused / stopped / cancelled, or fails. Throws
   // only for set-up errors before anything moved (unknown run, terminal run, unreadable config,
@@ -116,6 +135,7 @@ class RunEngine {
   void Publish(const RunProgress& progress);
 
   std::filesystem::path database_;
+  std::optional<SafetyLimits> limits_;
   std::thread thread_;
   std::atomic<bool> running_{false};
   RunReport thread_report_;

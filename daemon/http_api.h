@@ -1,0 +1,56 @@
+#pragma once
+// gs360d's HTTP server: the JSON API under /api/v1 (docs/api.md), its server-sent event stream,
+// and the dashboard at / (static files compiled into the binary; nothing fetched from elsewhere).
+//
+// Security (docs/api.md, "Security"):
+// - a bearer token (ServerConfig::token), when set, on every /api request (header
+//   "Authorization: Bearer T", or "?token=T" for EventSource and links), compared in constant
+//   time; 401 otherwise;
+// - without a token (loopback only) the Host header must name a loopback host, so a web page
+//   elsewhere cannot reach the daemon through DNS rebinding;
+// - POST bodies must be application/json (application/octet-stream for uploads), which a page
+//   on another origin cannot send without the browser asking first (CSRF);
+// - bodies above server.max_body_bytes (uploads: max_upload_bytes) get 413; runs and meshes are
+//   addressed by id, never by path;
+// - malformed JSON, wrong types and unknown fields get 400 naming the field.
+// Every error is {"error": {"code", "message", "field"}}.
+
+#include <memory>
+#include <stdexcept>
+#include <string>
+
+#include "daemon/daemon.h"
+
+namespace gs360 {
+
+// The address cannot be bound (in use, or not an address of this machine).
+class ListenError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+class HttpApi {
+ public:
+  HttpApi(Daemon& daemon, const ServerConfig& config);
+  ~HttpApi();
+  HttpApi(const HttpApi&) = delete;
+  HttpApi& operator=(const HttpApi&) = delete;
+
+  // Binds server.listen:server.port (port 0: any free one). Returns the port. Throws ListenError
+  // naming the address when it cannot bind.
+  int Bind();
+  // Serves until Stop() (from another thread or a signal handler's thread).
+  void Serve();
+  void Stop();
+  // "http://127.0.0.1:7360" once bound.
+  std::string Url() const;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+// Constant-time comparison (the token check).
+bool SameSecret(const std::string& a, const std::string& b);
+
+}  // namespace gs360
