@@ -837,8 +837,9 @@ CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
 
   // ---- 9. export ----
   {
-    const std::filesystem::path dir =
-        options.export_dir.empty() ? db.path().parent_path() : options.export_dir;
+    const std::filesystem::path dir = options.export_dir.empty()
+                                          ? std::filesystem::absolute(db.path()).parent_path()
+                                          : options.export_dir;
     const std::string name =
         options.model_name.empty() ? "run-" + std::to_string(run_id) : options.model_name;
     const std::string version =

@@ -1,122 +1,175 @@
-// `gs360 demo`: the whole product on the virtual rig, end to end, with nothing attached.
+// `gs360 demo`: the whole product on the virtual rig, end to end, through gs360d like any lab:
+// the virtual rig (a GRBL CNC on a pty, the tactile camera on a socket) here, gs360d started on a
+// free loopback port with a configuration pointing at it, then plan, probe, calibrate and export
+// through the API, with the dashboard's URL printed while it runs. At the end the daemon is
+// stopped and the validation is repeated here against the simulator's physical truth (which only
+// the demo, the tests and the benchmarks may see).
 
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
 
+#include "calib/report.h"
 #include "cli/calibrate_support.h"
 #include "cli/commands.h"
+#include "cli/daemon_client.h"
+#include "cli/daemon_process.h"
 #include "cli/progress.h"
-#include "cli/report.h"
+#include "cli/run_view.h"
 #include "cli/sim_bridge.h"
 #include "cli/sim_truth.h"
-#include "daemon/run_engine.h"
+#include "gcode/grbl_client.h"
 #include "sim/virtual_rig.h"
 
 namespace gs360::cli {
 namespace {
 
+using Json = nlohmann::json;
+
 struct DemoOptions {
   std::string shape = "cylinder";
   int probes = 200;
   double time_scale = 0.0;
-  std::string db;
+  std::string data_dir;
   std::uint64_t seed = 1;
   int max_epochs = 0;
   bool no_calibrate = false;
 };
+
+double Since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+void WriteDaemonConfig(const std::filesystem::path& path, const RunConfig& config) {
+  std::ofstream out(path);
+  out << "# gs360d for `gs360 demo`: the virtual rig of this process.\n"
+         "data_dir = \".\"\n\n[server]\nport = 0\n\n"
+         "[machine]\nuri = \""
+      << config.machine.uri << "\"\n\n[camera]\nuri = \"" << config.camera.uri
+      << "\"\n\n[calibration]\ncheckerboards = \"checkerboards\"\n";
+  if (!out.flush()) throw std::runtime_error("cannot write " + path.string());
+}
+
+// The validation again, here, against the simulator's physical truth (the daemon is stopped:
+// this process may then open its database). Every stage but validate is cached.
+void ValidateAgainstTruth(const std::filesystem::path& db_path, std::int64_t run_id,
+                          const VirtualRig& rig, const RunConfig& config, int max_epochs) {
+  RunDatabase db(db_path);
+  CalibrationOptions options;
+  if (max_epochs > 0) options.train.max_epochs = max_epochs;
+  options.export_dir = db_path.parent_path() / "runs" / std::to_string(run_id) / "model";
+  const SimValidationTruth truth(rig.rig(), rig.options().camera.gel);
+  const CalibrationResult result = RunCalibration(
+      db, run_id, CalibrationInputsFor(config, db_path.parent_path() / "checkerboards"), options,
+      &truth);
+  std::printf("\nvalidation against the virtual rig's physical truth (held-out probes):\n%s",
+              FormatValidationTable(result.validation).c_str());
+  for (const auto& t : ValidationTargets(result.validation)) {
+    const bool known = t["value"].is_number();
+    std::printf("  %-28s %10s %-4s target <= %g  %s\n", t["name"].get<std::string>().c_str(),
+                known ? FormatFixed(t["value"].get<double>(), 4).c_str() : "-",
+                t["unit"].get<std::string>().c_str(), t["target"].get<double>(),
+                t["pass"].get<bool>() ? "pass" : "FAIL");
+  }
+}
+
+int RunDemo(const DemoOptions& o) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const std::filesystem::path dir = std::filesystem::absolute(
+      o.data_dir.empty()
+          ? std::filesystem::temp_directory_path() / ("gs360-demo-" + std::to_string(::getpid()))
+          : std::filesystem::path(o.data_dir));
+  std::filesystem::create_directories(dir);
+  std::printf("gs360 demo: %s sensor, %d candidate probes, virtual machine at %s\n",
+              o.shape.c_str(), o.probes,
+              o.time_scale > 0.0 ? (FormatFixed(o.time_scale, 1) + "x real time").c_str()
+                                 : "instant motion");
+  RunConfig config;
+  config.rig.shape.shape = ParseSensorShape(o.shape);
+  VirtualSetup setup = MakeVirtualSetup(config, o.time_scale, o.seed, dir / "camera.sock");
+  config = setup.config;
+  VirtualRig& rig = *setup.rig;
+  std::printf("virtual rig: CNC on %s, camera on %s (%s)\n", rig.PtyPath().c_str(),
+              rig.FrameUri().c_str(), rig.rig()->Describe().c_str());
+  // The lab's checkerboard shots, taken through the (hidden) true lens before assembly.
+  const int boards = WriteSimCheckerboards(*rig.rig(), dir / "checkerboards", 16, o.seed);
+  WriteDaemonConfig(dir / "gs360d.toml", config);
+  DaemonProcess daemon(FindGs360d(), dir / "gs360d.toml", dir, dir / "gs360d.log");
+  std::printf("gs360d: %s (data folder %s, log gs360d.log)\ndashboard: %s/\n\n",
+              daemon.url().c_str(), dir.c_str(), daemon.url().c_str());
+
+  DaemonClient client(daemon.url(), "");
+  const Json created = client.Post("/api/v1/runs", {{"name", "demo-" + o.shape},
+                                                    {"shape", {{"type", o.shape}}},
+                                                    {"probes", o.probes},
+                                                    {"plan", {{"seed", o.seed}}}});
+  const std::int64_t id = created["id"].get<std::int64_t>();
+  std::printf("created run %lld\n", static_cast<long long>(id));
+  PrintPlan(stdout, created["plan"]);
+  client.Post("/api/v1/runs/" + std::to_string(id) + "/start");
+  const Json run = WatchRun(client, id, stdout, stderr);
+  const double acquisition_s = Since(t0);
+
+  RunDatabaseOptions ro;
+  ro.read_only = true;
+  const CaptureTruth truth = [&] {
+    RunDatabase db(dir / "gs360.db", ro);
+    return CheckCapturesAgainstTruth(rig, db, id);
+  }();
+  std::printf(
+      "  truth check: %d frames, %d taken off the press point, %d unverifiable; max |true "
+      "- planned| = %.4f mm, max |reported - true| = %.4f mm\n",
+      truth.frames, truth.off_target, truth.unverified, truth.max_error_mm,
+      truth.max_reported_error_mm);
+  const bool acquired = run["state"] == "done" && truth.off_target == 0 && truth.unverified == 0;
+  bool calibrated = o.no_calibrate;
+  if (acquired && !o.no_calibrate) {
+    std::printf("\ncalibration on gs360d (%d checkerboard images of the lens):\n", boards);
+    Json request = Json::object();
+    if (o.max_epochs > 0) request["max_epochs"] = o.max_epochs;
+    client.Post("/api/v1/runs/" + std::to_string(id) + "/calibrate", request);
+    const Json view = WatchCalibration(client, id, stdout);
+    calibrated = view["state"] == "done";
+    std::printf(
+        "\nmodel: %s/api/v1/runs/%lld/model (or `gs360 export %lld --out DIR --daemon %s`)\n",
+        daemon.url().c_str(), static_cast<long long>(id), static_cast<long long>(id),
+        daemon.url().c_str());
+  }
+  const int stopped = daemon.Stop();
+  if (stopped != 0)
+    std::printf("gs360d exited with %d (see %s/gs360d.log)\n", stopped, dir.c_str());
+  if (acquired && calibrated && !o.no_calibrate) {
+    ValidateAgainstTruth(dir / "gs360.db", id, rig, config, o.max_epochs);
+  }
+  std::printf("demo finished in %s (acquisition %s); data in %s\n",
+              FormatDuration(Since(t0)).c_str(), FormatDuration(acquisition_s).c_str(),
+              dir.c_str());
+  return acquired && calibrated && stopped == 0 ? kExitOk : kExitError;
+}
 
 }  // namespace
 
 void RegisterDemoCommand(CLI::App& app, CommandContext& ctx) {
   static DemoOptions o;
   auto* demo = app.add_subcommand(
-      "demo", "Run the whole pipeline on the simulated rig: plan, stream, capture, store");
+      "demo",
+      "The whole product on the simulated rig, through gs360d: plan, probe, capture, store, "
+      "calibrate, validate");
   demo->add_option("--shape", o.shape, "Sensor: cylinder, cone or spline")->capture_default_str();
   demo->add_option("--probes", o.probes, "Candidate points sampled on the sensor")
       ->capture_default_str();
   demo->add_option("--time-scale", o.time_scale,
                    "Virtual machine speed: 1 = real time, 0 = instant motion")
       ->capture_default_str();
-  demo->add_option("--db", o.db, "Run database (default: a new file in the temp directory)");
+  demo->add_option("--data-dir", o.data_dir,
+                   "The daemon's data folder (default: a new folder in the temp directory)");
   demo->add_option("--seed", o.seed, "Seed of the sampling, the hidden true camera and the noise")
       ->capture_default_str();
   demo->add_option("--max-epochs", o.max_epochs,
                    "Training epochs at most (default: the trainer's)");
   demo->add_flag("--no-calibrate", o.no_calibrate, "Stop after the acquisition");
-  demo->callback([&ctx] {
-    const auto t0 = std::chrono::steady_clock::now();
-    RunConfig config;
-    config.name = "demo-" + o.shape;
-    config.rig.shape.shape = ParseSensorShape(o.shape);
-    config.plan.probe_count = o.probes;
-    config.plan.seed = o.seed;
-
-    std::printf("gs360 demo: %s sensor, %d candidate probes, virtual machine at %s\n",
-                o.shape.c_str(), o.probes,
-                o.time_scale > 0.0 ? (std::to_string(o.time_scale) + "x real time").c_str()
-                                   : "instant motion");
-    VirtualSetup setup = MakeVirtualSetup(config, o.time_scale, o.seed);
-    config = setup.config;
-    VirtualRig& rig = *setup.rig;
-    std::printf("virtual rig: CNC on %s, camera on %s (%s)\n", rig.PtyPath().c_str(),
-                rig.FrameUri().c_str(), rig.rig()->Describe().c_str());
-
-    const std::filesystem::path db = o.db.empty()
-                                         ? std::filesystem::temp_directory_path() /
-                                               ("gs360-demo-" + std::to_string(::getpid()) + ".db")
-                                         : std::filesystem::path(o.db);
-    RunEngine engine(db);
-    ProbePlan plan;
-    const auto run_id = engine.CreateRun(config, &plan);
-    PrintPlanSummary(stdout, plan);
-
-    ProgressPrinter printer;
-    engine.SetProgressCallback([&](const RunProgress& p) { printer.Update(p); });
-    const RunReport report = engine.Execute(run_id);
-    printer.Finish();
-
-    RunDatabaseOptions ro;
-    ro.read_only = true;
-    RunDatabase database(db, ro);
-    const RunStatus status = database.GetRunStatus(run_id);
-    const CaptureTruth truth = CheckCapturesAgainstTruth(rig, database, run_id);
-    const double wall =
-        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    std::printf("\nacquisition: %s (%s)\n", std::string(ToString(report.outcome)).c_str(),
-                report.message.c_str());
-    PrintRunStatus(stdout, status);
-    std::printf(
-        "  %lld frames in %s of run time (%.0f ms per probe), database %s: %.1f MB\n",
-        static_cast<long long>(report.captured), FormatDuration(report.seconds).c_str(),
-        report.captured > 0 ? 1000.0 * report.seconds / static_cast<double>(report.captured) : 0.0,
-        db.string().c_str(), static_cast<double>(std::filesystem::file_size(db)) / 1e6);
-    std::printf(
-        "  truth check: %d frames, %d taken off the press point, %d unverifiable; max |true - "
-        "planned| = %.4f mm, max |reported - true| = %.4f mm\n",
-        truth.frames, truth.off_target, truth.unverified, truth.max_error_mm,
-        truth.max_reported_error_mm);
-    const bool acquired =
-        report.outcome == RunOutcome::kDone && truth.off_target == 0 && truth.unverified == 0;
-    if (acquired && !o.no_calibrate) {
-      // The lab's checkerboard shots, taken through the (hidden) true lens before assembly.
-      const std::filesystem::path boards =
-          db.parent_path() / (db.stem().string() + "-checkerboards");
-      const int n_boards = WriteSimCheckerboards(*rig.rig(), boards, 16, o.seed);
-      std::printf("\ncalibration: %d checkerboard images in %s\n", n_boards, boards.c_str());
-      RunDatabase writable(db);
-      CalibrationOptions options;
-      if (o.max_epochs > 0) options.train.max_epochs = o.max_epochs;
-      const SimValidationTruth sim_truth(rig.rig(), rig.options().camera.gel);
-      CalibrateAndPrint(writable, run_id, CalibrationInputsFor(config, boards), options, &sim_truth,
-                        stdout);
-    }
-    const double total =
-        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    std::printf("demo finished in %s (acquisition %s)\n", FormatDuration(total).c_str(),
-                FormatDuration(wall).c_str());
-    ctx.exit_code = acquired ? 0 : 1;
-  });
+  demo->callback([&ctx] { ctx.exit_code = RunDemo(o); });
 }
 
 }  // namespace gs360::cli

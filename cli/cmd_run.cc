@@ -1,124 +1,186 @@
-// `gs360 run start|resume|status|list`: the overnight run from a shell.
+// `gs360 run start|list|status|pause|resume|cancel|delete|log`: runs on gs360d, through its API.
 
-#include <csignal>
 #include <cstdio>
-#include <filesystem>
+#include <fstream>
+#include <sstream>
 
+#include "base/json_reader.h"
 #include "cli/commands.h"
-#include "cli/progress.h"
-#include "cli/report.h"
-#include "daemon/run_config.h"
-#include "daemon/run_engine.h"
+#include "cli/daemon_client.h"
+#include "cli/run_view.h"
 
 namespace gs360::cli {
 namespace {
 
-std::atomic<RunEngine*> g_engine{nullptr};
+using Json = nlohmann::json;
 
-extern "C" void OnStopSignal(int) {
-  // Async-signal-safe: one atomic store. The run finishes its probe, retracts, commits, exits.
-  if (RunEngine* e = g_engine.load()) e->RequestStop();
+struct StartArgs {
+  std::string request;
+  std::string name;
+  std::string shape;
+  int probes = 0;
+  std::string mesh;
+  std::int64_t seed = -1;
+  bool plan_only = false;
+  bool watch = false;
+};
+
+void PrintJson(const Json& j) {
+  std::printf("%s\n", j.dump(2).c_str());
 }
 
-int ExecuteWithProgress(RunEngine& engine, std::int64_t run_id,
-                        const SessionOverrides& overrides = {}) {
-  ProgressPrinter printer;
-  engine.SetProgressCallback([&](const RunProgress& p) { printer.Update(p); });
-  g_engine = &engine;
-  struct sigaction sa {};
-  sa.sa_handler = OnStopSignal;
-  sigemptyset(&sa.sa_mask);
-  struct sigaction old_term {
-  }, old_int{};
-  sigaction(SIGTERM, &sa, &old_term);
-  sigaction(SIGINT, &sa, &old_int);
-  RunReport report;
-  try {
-    // The run has its own thread; this one only waits (signals set a flag the run polls).
-    engine.Start(run_id, overrides);
-    report = engine.Wait();
-  } catch (...) {
-    g_engine = nullptr;
-    sigaction(SIGTERM, &old_term, nullptr);
-    sigaction(SIGINT, &old_int, nullptr);
-    printer.Finish();
-    throw;
+// The request body: the file (an API request, docs/api.md), then the flags on top.
+Json StartRequest(DaemonClient& client, const StartArgs& a) {
+  Json request = a.request.empty() ? Json::object() : ParseJsonFile(a.request);
+  if (!request.is_object()) throw ConfigError(a.request + ": expected a JSON object");
+  if (!a.name.empty()) request["name"] = a.name;
+  if (!a.shape.empty()) request["shape"] = {{"type", a.shape}};
+  if (a.probes > 0) request["probes"] = a.probes;
+  if (a.seed >= 0) request["plan"]["seed"] = a.seed;
+  if (a.plan_only) request["plan_only"] = true;
+  if (!a.mesh.empty()) {
+    std::ifstream in(a.mesh, std::ios::binary);
+    if (!in) throw ClientError("--mesh: cannot read " + a.mesh, kExitUsage);
+    std::stringstream bytes;
+    bytes << in.rdbuf();
+    std::string ext = std::filesystem::path(a.mesh).extension().string();
+    if (!ext.empty()) ext = ext.substr(1);
+    for (char& c : ext) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+    const Json mesh = client.PostBytes("/api/v1/meshes?format=" + ext, bytes.str());
+    std::fprintf(stderr, "uploaded %s: mesh %s, %lld triangles\n", a.mesh.c_str(),
+                 mesh["id"].get<std::string>().c_str(), mesh["triangles"].get<long long>());
+    request["mesh"] = mesh["id"];
+    request.erase("shape");
   }
-  g_engine = nullptr;
-  sigaction(SIGTERM, &old_term, nullptr);
-  sigaction(SIGINT, &old_int, nullptr);
-  printer.Finish();
-  std::printf(
-      "run %lld %s: %s\n  this session: %lld captured, %lld failed attempts, %d recoveries, %s\n",
-      static_cast<long long>(run_id), std::string(ToString(report.outcome)).c_str(),
-      report.message.c_str(), static_cast<long long>(report.captured),
-      static_cast<long long>(report.failed), report.recoveries,
-      FormatDuration(report.seconds).c_str());
-  switch (report.outcome) {
-    case RunOutcome::kDone:
-    case RunOutcome::kPaused:
-    case RunOutcome::kCancelled:
-      return 0;
-    case RunOutcome::kStopped:
-      return 3;  // resumable
-    case RunOutcome::kFailed:
-      return 2;
-  }
-  return 2;
+  return request;
+}
+
+void RegisterStart(CLI::App& run, CommandContext& ctx) {
+  static StartArgs a;
+  auto* start = run.add_subcommand(
+      "start", "Plan a new run on the daemon's rig and start it (or only plan it)");
+  start->add_option("request", a.request,
+                    "A run request (JSON, as POST /api/v1/runs; flags below override it)");
+  start->add_option("--name", a.name, "Run name");
+  start->add_option("--shape", a.shape, "Built-in sensor: cylinder, cone or spline");
+  start->add_option("--probes", a.probes, "Candidate points sampled on the sensor");
+  start->add_option("--mesh", a.mesh, "Sensor mesh (STL, OBJ, PLY; sensor frame, mm) to upload");
+  start->add_option("--seed", a.seed, "Sampling seed");
+  start->add_flag("--plan-only", a.plan_only, "Plan and print the estimate; store nothing");
+  start->add_flag("--watch", a.watch, "Follow the run with a progress bar until it stops");
+  start->callback([&ctx] {
+    DaemonClient client(ctx.daemon_url, ctx.token);
+    const Json created = client.Post("/api/v1/runs", StartRequest(client, a));
+    if (a.plan_only) {
+      ctx.json ? PrintJson(created) : PrintPlan(stdout, created);
+      return;
+    }
+    const std::int64_t id = created["id"].get<std::int64_t>();
+    const Json started = client.Post("/api/v1/runs/" + std::to_string(id) + "/start");
+    if (ctx.json) {
+      PrintJson({{"run", created}, {"start", started}});
+    } else {
+      std::printf("created run %lld (%s)\n", static_cast<long long>(id),
+                  created["name"].get<std::string>().c_str());
+      PrintPlan(stdout, created["plan"]);
+      std::printf("run %lld %s\n", static_cast<long long>(id),
+                  started["message"].get<std::string>().c_str());
+    }
+    if (a.watch) ctx.exit_code = ExitCodeOfRun(WatchRun(client, id, stdout, stderr));
+  });
+}
+
+void RegisterStatus(CLI::App& run, CommandContext& ctx) {
+  static std::int64_t id = 0;
+  static bool watch = false;
+  auto* status = run.add_subcommand("status", "Progress of one run, or of every run");
+  status->add_option("run", id, "Run id (default: every run)");
+  status->add_flag("--watch", watch, "Follow the run with a progress bar until it stops");
+  status->callback([&ctx] {
+    DaemonClient client(ctx.daemon_url, ctx.token);
+    if (id == 0) {
+      const Json runs = client.Get("/api/v1/runs");
+      if (ctx.json) return PrintJson(runs);
+      if (runs["runs"].empty()) std::printf("no runs\n");
+      for (const Json& r : runs["runs"]) PrintRun(stdout, r);
+      return;
+    }
+    if (watch) {
+      const Json last = WatchRun(client, id, ctx.json ? stderr : stdout, stderr);
+      if (ctx.json) PrintJson(last);
+      ctx.exit_code = ExitCodeOfRun(last);
+      return;
+    }
+    const Json r = client.Get("/api/v1/runs/" + std::to_string(id));
+    ctx.json ? PrintJson(r) : PrintRun(stdout, r);
+  });
+  auto* list = run.add_subcommand("list", "Every run, one line each");
+  list->callback([&ctx] {
+    DaemonClient client(ctx.daemon_url, ctx.token);
+    const Json runs = client.Get("/api/v1/runs");
+    if (ctx.json) return PrintJson(runs);
+    if (runs["runs"].empty()) std::printf("no runs\n");
+    for (const Json& r : runs["runs"]) PrintRun(stdout, r);
+  });
+}
+
+void RegisterAction(CLI::App& run, CommandContext& ctx, const std::string& action,
+                    const std::string& help) {
+  static std::map<std::string, std::int64_t> ids;
+  auto* cmd = run.add_subcommand(action, help);
+  cmd->add_option("run", ids[action], "Run id")->required();
+  cmd->callback([&ctx, action] {
+    DaemonClient client(ctx.daemon_url, ctx.token);
+    const std::string path = "/api/v1/runs/" + std::to_string(ids[action]);
+    if (action == "delete") {
+      client.Delete(path);
+      if (ctx.json) return PrintJson({{"id", ids[action]}, {"state", "deleted"}});
+      std::printf("run %lld deleted\n", static_cast<long long>(ids[action]));
+      return;
+    }
+    const Json r = client.Post(path + "/" + action);
+    if (ctx.json) return PrintJson(r);
+    std::printf("run %lld: %s\n", static_cast<long long>(ids[action]),
+                r["message"].get<std::string>().c_str());
+  });
+}
+
+void RegisterLog(CLI::App& run, CommandContext& ctx) {
+  static std::int64_t id = 0;
+  auto* log = run.add_subcommand("log", "A run's log: state changes, warnings, alarms");
+  log->add_option("run", id, "Run id")->required();
+  log->callback([&ctx] {
+    DaemonClient client(ctx.daemon_url, ctx.token);
+    std::int64_t after = 0;
+    Json all = Json::array();
+    for (;;) {
+      const Json page =
+          client.Get("/api/v1/runs/" + std::to_string(id) + "/log?after=" + std::to_string(after));
+      if (page["events"].empty()) break;
+      for (const Json& e : page["events"]) all.push_back(e);
+      after = page["events"].back()["id"].get<std::int64_t>();
+    }
+    if (ctx.json) return PrintJson({{"run", id}, {"events", all}});
+    for (const Json& e : all) {
+      std::printf("%-7s %s\n", e["level"].get<std::string>().c_str(),
+                  e["message"].get<std::string>().c_str());
+    }
+  });
 }
 
 }  // namespace
 
 void RegisterRunCommands(CLI::App& app, CommandContext& ctx) {
-  auto* run = app.add_subcommand("run", "Create, execute, resume and inspect calibration runs");
+  auto* run = app.add_subcommand("run", "Runs on gs360d: start, follow, pause, resume, cancel");
   run->require_subcommand(1);
-  static std::string db = "gs360.db";
-  run->add_option("--db", db, "Run database (SQLite file)")->capture_default_str();
-
-  auto* start = run->add_subcommand("start", "Plan a new run from a config file, then execute it");
-  static std::string config_path;
-  static std::string name;
-  static bool plan_only = false;
-  start->add_option("config", config_path, "Run configuration (JSON)")->required();
-  start->add_option("--name", name, "Run name (default: the config's)");
-  start->add_flag("--plan-only", plan_only, "Store the plan and stop; no motion");
-  start->callback([&ctx] {
-    RunConfig config = LoadRunConfigFile(config_path);
-    if (!name.empty()) config.name = name;
-    RunEngine engine(db);
-    ProbePlan plan;
-    const auto run_id = engine.CreateRun(config, &plan);
-    std::printf("created run %lld in %s\n", static_cast<long long>(run_id), db.c_str());
-    PrintPlanSummary(stdout, plan);
-    if (plan_only) return;
-    ctx.exit_code = ExecuteWithProgress(engine, run_id);
-  });
-
-  auto* resume = run->add_subcommand("resume", "Continue an interrupted or paused run");
-  static std::int64_t run_id = 0;
-  static SessionOverrides overrides;
-  resume->add_option("run", run_id, "Run id")->required();
-  resume->add_option("--machine", overrides.machine_uri,
-                     "Controller for this session if it moved (e.g. /dev/ttyUSB1)");
-  resume->add_option("--camera", overrides.camera_uri, "Camera URI for this session if it moved");
-  resume->callback([&ctx] {
-    RunEngine engine(db);
-    ctx.exit_code = ExecuteWithProgress(engine, run_id, overrides);
-  });
-
-  auto* status = run->add_subcommand("status", "Progress of every run (or one)");
-  static std::int64_t status_run = 0;
-  status->add_option("run", status_run, "Run id (default: all)");
-  status->callback([] {
-    if (!std::filesystem::exists(db)) throw std::runtime_error("no database at " + db);
-    RunDatabaseOptions options;
-    options.read_only = true;
-    RunDatabase database(db, options);
-    for (const RunRecord& r : database.ListRuns()) {
-      if (status_run != 0 && r.id != status_run) continue;
-      PrintRunStatus(stdout, database.GetRunStatus(r.id));
-    }
-  });
+  RegisterStart(*run, ctx);
+  RegisterStatus(*run, ctx);
+  RegisterAction(*run, ctx, "pause", "Pause after the current probe (retracted, holding)");
+  RegisterAction(*run, ctx, "resume",
+                 "Continue a paused or interrupted run (reconnects, re-checks, goes on)");
+  RegisterAction(*run, ctx, "cancel", "End a run after the current probe and park; data is kept");
+  RegisterAction(*run, ctx, "delete", "Remove a run that is not running, and all its data");
+  RegisterLog(*run, ctx);
 }
 
 }  // namespace gs360::cli

@@ -19,16 +19,4 @@ void PrintPlanSummary(std::FILE* out, const ProbePlan& plan) {
                100.0 * plan.estimate.PressShare(), plan.TourGain(), plan.detoured_moves);
 }
 
-void PrintRunStatus(std::FILE* out, const RunStatus& s) {
-  const auto& c = s.probes;
-  std::fprintf(out,
-               "run %lld %-12s %s  probes %lld/%lld captured, %lld failed, %lld skipped, %lld "
-               "planned  elapsed %s  references %lld\n",
-               static_cast<long long>(s.run.id), std::string(ToString(s.run.state)).c_str(),
-               s.run.name.c_str(), static_cast<long long>(c.captured),
-               static_cast<long long>(c.total), static_cast<long long>(c.failed),
-               static_cast<long long>(c.skipped), static_cast<long long>(c.planned),
-               FormatDuration(s.elapsed_s).c_str(), static_cast<long long>(s.reference_frames));
-}
-
 }  // namespace gs360::cli

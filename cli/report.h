@@ -1,5 +1,5 @@
 #pragma once
-// Human-readable summaries shared by `run` and `demo`.
+// The plan summary of `gs360 bench acquisition`.
 
 #include <cstdio>
 
@@ -9,6 +9,5 @@
 namespace gs360::cli {
 
 void PrintPlanSummary(std::FILE* out, const ProbePlan& plan);
-void PrintRunStatus(std::FILE* out, const RunStatus& status);
 
 }  // namespace gs360::cli

@@ -47,6 +47,17 @@ void ReadRunRequest(JsonReader& r, RunConfig& config, std::string* mesh_id, bool
   r.RejectUnknown();
 }
 
+// The request's field named by a Check() message ("PlanOptions.press_depth must be ...").
+std::string RequestField(const std::string& message) {
+  std::string field = message.substr(0, message.find(' '));
+  for (const auto& [from, to] : {std::pair<std::string, std::string>{"PlanOptions.", "plan."},
+                                 {"plan.", "plan."},
+                                 {"RigConfig.", "rig."}}) {
+    if (field.rfind(from, 0) == 0) return to + field.substr(from.size());
+  }
+  return field.find('.') != std::string::npos ? "shape" : "";
+}
+
 Json PlanSummary(const ProbePlan& plan) {
   Json dropped = Json::object();
   for (int i = 0; i < kNumDropReasons; ++i) {
@@ -84,8 +95,7 @@ Json Daemon::CreateRun(const Json& request, bool* created) {
   try {
     checked.Check();
   } catch (const std::invalid_argument& e) {
-    const std::string what = e.what();
-    throw ConfigError("request: " + what, what.substr(0, what.find(' ')));
+    throw ConfigError("request: " + std::string(e.what()), RequestField(e.what()));
   }
   const ProbePlan plan = RunEngine::PlanRun(checked, &config_.limits);
   *created = !plan_only;
@@ -265,7 +275,7 @@ Json Daemon::UploadMesh(const std::string& bytes, const std::string& format) {
     std::string why = e.what();
     const auto at = why.find(tmp.string());
     if (at != std::string::npos) why.replace(at, tmp.string().size(), "the uploaded mesh");
-    throw ConfigError("mesh: " + why, "mesh");
+    throw MeshError("mesh: " + why);
   }
   std::filesystem::rename(tmp, dir / (id + "." + format));
   const auto bounds = mesh.Bounds();

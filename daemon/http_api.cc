@@ -23,7 +23,8 @@ using httplib::Response;
 
 void SendJson(Response& res, int status, const Json& body) {
   res.status = status;
-  res.set_content(body.dump(), "application/json");
+  // Messages may quote what a client sent, bytes that are not UTF-8 included.
+  res.set_content(body.dump(-1, ' ', false, Json::error_handler_t::replace), "application/json");
 }
 
 void SendError(Response& res, int status, const std::string& code, const std::string& message,

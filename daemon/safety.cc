@@ -118,17 +118,24 @@ std::optional<std::string> SafetyGuard::CheckTarget(const Eigen::Vector3d& from,
              static_cast<char>('x' + i) + " = " + Num(limits_.envelope_max[i]);
     }
   }
-  // The ball's overlap with the gel, at the target and along the move.
+  // The ball's deepest overlap with the gel along the move (its target included).
   const double length = (to - from).norm();
   const int steps = std::max(1, static_cast<int>(std::ceil(length / kSampleStep)));
+  double deepest = -1e9;
+  Eigen::Vector3d deepest_at = to;
   for (int k = 1; k <= steps; ++k) {
     const Eigen::Vector3d at = from + (to - from) * (static_cast<double>(k) / steps);
     const double depth = ball_radius_ - travel_->Distance().Signed(travel_->BallFromMachine(at));
-    if (depth > max_depth_ + kDepthTolerance) {
-      return "the ball would go " + Num(depth) + " mm into the gel at " + Num(at.x()) + ", " +
-             Num(at.y()) + ", " + Num(at.z()) + " (deepest allowed " + Num(max_depth_) +
-             " mm: limits.max_press_depth, rig.gel_thickness and the ball's radius)";
+    if (depth > deepest) {
+      deepest = depth;
+      deepest_at = at;
     }
+  }
+  if (deepest > max_depth_ + kDepthTolerance) {
+    return "the ball would go " + Num(deepest) + " mm into the gel at " + Num(deepest_at.x()) +
+           ", " + Num(deepest_at.y()) + ", " + Num(deepest_at.z()) + " (deepest allowed " +
+           Num(max_depth_) +
+           " mm: limits.max_press_depth, rig.gel_thickness and the ball's radius)";
   }
   return std::nullopt;
 }

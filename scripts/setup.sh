@@ -27,7 +27,12 @@ packages=(
   libonnx-dev libprotobuf-dev
   nlohmann-json3-dev libcpp-httplib-dev libcli11-dev libtomlplusplus-dev
   libsystemd-dev
+  curl
 )
+# Headless browser for the dashboard's test (tests/browser); only the test mode needs it.
+if [ "$mode" = test ]; then
+  packages+=(chromium)
+fi
 
 missing=()
 for p in "${packages[@]}"; do

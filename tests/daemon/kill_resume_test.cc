@@ -1,105 +1,91 @@
-// Issue 4's acceptance test: a few hundred probes end to end through the real pty, the runner
-// process killed with SIGKILL at random moments several times, resumed each time; at the end
-// exactly one committed frame per reachable probe, each taken while the virtual CNC truly stood
-// at the press position.
+// gs360d killed: a few hundred probes through the real pty, the daemon SIGKILLed at random
+// moments several times and started again, the run resumed each time; at the end exactly one
+// committed frame per reachable probe, each taken while the virtual CNC truly stood at the press
+// position. And SIGTERM: the current probe is finished and the daemon exits cleanly.
 
 #include <catch2/catch.hpp>
 
-#include <fcntl.h>
-#include <signal.h>
-#include <spawn.h>
-#include <sys/wait.h>
-
-#include <fstream>
 #include <random>
 #include <set>
 #include <thread>
 
-#include <nlohmann/json.hpp>
-
-#include "rig_fixture.h"
+#include "cli/daemon_client.h"
+#include "daemon_fixture.h"
 #include "storage/run_database.h"
 
-extern char** environ;
-
 using namespace gs360;
+using Json = nlohmann::json;
 
 namespace {
 
-pid_t Spawn(const std::vector<std::string>& args, const std::filesystem::path& log) {
-  std::vector<char*> argv;
-  for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
-  argv.push_back(nullptr);
-  posix_spawn_file_actions_t actions;
-  posix_spawn_file_actions_init(&actions);
-  posix_spawn_file_actions_addopen(&actions, 1, log.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644);
-  posix_spawn_file_actions_adddup2(&actions, 1, 2);
-  pid_t pid = -1;
-  const int rc = posix_spawn(&pid, argv[0], &actions, nullptr, argv.data(), environ);
-  posix_spawn_file_actions_destroy(&actions);
-  REQUIRE(rc == 0);
-  return pid;
+RunDatabase ReadOnly(const std::filesystem::path& path) {
+  RunDatabaseOptions ro;
+  ro.read_only = true;
+  return RunDatabase(path, ro);
 }
 
-// Waits up to `timeout` for the child; returns its exit status, or -1 if still running.
-int WaitFor(pid_t pid, std::chrono::seconds timeout) {
-  const auto deadline = std::chrono::steady_clock::now() + timeout;
-  while (std::chrono::steady_clock::now() < deadline) {
-    int status = 0;
-    if (waitpid(pid, &status, WNOHANG) == pid) return WIFEXITED(status) ? WEXITSTATUS(status) : 128;
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+// Polls the daemon until the run's view satisfies `pred` (60 s at most).
+template <typename Pred>
+Json WaitFor(cli::DaemonClient& client, std::int64_t id, Pred pred) {
+  Json run;
+  for (int i = 0; i < 1200; ++i) {
+    run = client.Get("/api/v1/runs/" + std::to_string(id));
+    if (pred(run)) return run;
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
   }
-  return -1;
+  FAIL("timed out; last view " << run.dump());
+  return run;
 }
 
 }  // namespace
 
-TEST_CASE("SIGKILL at random moments, resume, and every reachable probe has exactly one frame",
-          "[daemon][kill]") {
+TEST_CASE(
+    "gs360d SIGKILLed at random moments: resume, and every reachable probe has exactly "
+    "one frame",
+    "[daemon][kill]") {
   test::RigFixture f("kill", 400, 0.0);
-  const std::string gs360 = std::string(GS360_BINARY_DIR) + "/cli/gs360";
-  const auto config_path = f.dir / "run.json";
-  std::ofstream(config_path) << RunConfigToJson(f.config).dump(2);
-  const auto log = f.dir / "runner.log";
-
-  const pid_t planner = Spawn(
-      {gs360, "run", "--db", f.db.string(), "start", config_path.string(), "--plan-only"}, log);
-  REQUIRE(WaitFor(planner, std::chrono::seconds(120)) == 0);
+  const auto db_path = f.dir / "data" / "gs360.db";
   std::int64_t total = 0;
   {
-    RunDatabase db(f.db);
-    total = db.CountProbes(1).total;
+    auto daemon = test::StartDaemonProcess(f);
+    cli::DaemonClient client(daemon->url(), "");
+    const Json created = client.Post("/api/v1/runs", {{"name", "kill"}, {"probes", 400}});
+    total = created["probes_total"];
+    daemon->Stop();
   }
   REQUIRE(total >= 150);
 
   std::mt19937 rng(2026);
   std::uniform_int_distribution<int> delay_ms(1500, 6000);
-  int kills = 0;
   std::int64_t last_captured = 0;
   for (int round = 0; round < 6; ++round) {
-    const pid_t runner = Spawn({gs360, "run", "--db", f.db.string(), "resume", "1"}, log);
+    auto daemon = test::StartDaemonProcess(f);
+    cli::DaemonClient client(daemon->url(), "");
+    // A run the previous daemon left running shows as interrupted, never running.
+    const Json before = client.Get("/api/v1/runs/1");
+    CHECK(before["state"] == (round == 0 ? "created" : "interrupted"));
+    client.Post(std::string("/api/v1/runs/1/") + (round == 0 ? "start" : "resume"));
     std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms(rng)));
-    if (kill(runner, SIGKILL) == 0) ++kills;
-    int status = 0;
-    waitpid(runner, &status, 0);
-    RunDatabase db(f.db);
+    daemon->Kill();
+    RunDatabase db = ReadOnly(db_path);
     const auto captured = db.CountProbes(1).captured;
     CHECK(captured >= last_captured);  // nothing committed is ever lost
     last_captured = captured;
     CHECK(db.IntegrityCheck().empty());
   }
-  CHECK(kills >= 5);
+  CHECK(last_captured > 0);
+  CHECK(last_captured < total);
 
-  const pid_t runner = Spawn({gs360, "run", "--db", f.db.string(), "resume", "1"}, log);
-  const int rc = WaitFor(runner, std::chrono::seconds(600));
-  if (rc == -1) kill(runner, SIGKILL);
-  INFO("runner log: " << log.string());
-  REQUIRE(rc == 0);
+  auto daemon = test::StartDaemonProcess(f);
+  cli::DaemonClient client(daemon->url(), "");
+  client.Post("/api/v1/runs/1/resume");
+  const Json done = WaitFor(client, 1, [](const Json& r) {
+    return r["state"] != "running" && r["state"] != "starting" && r["state"] != "interrupted";
+  });
+  CHECK(done["state"] == "done");
+  CHECK(daemon->Stop() == 0);
 
-  RunDatabaseOptions ro;
-  ro.read_only = true;
-  RunDatabase db(f.db, ro);
-  CHECK(db.GetRun(1)->state == RunState::kDone);
+  RunDatabase db = ReadOnly(db_path);
   const ProbeCounts counts = db.CountProbes(1);
   CHECK(counts.captured == total);
   CHECK(counts.failed == 0);
@@ -114,35 +100,46 @@ TEST_CASE("SIGKILL at random moments, resume, and every reachable probe has exac
   CHECK(truth.max_error_mm < 0.005);
 }
 
-TEST_CASE("SIGTERM finishes the current probe, retracts, commits and exits", "[daemon][kill]") {
+TEST_CASE("gs360d on SIGTERM finishes the current probe, retracts, commits and exits 0",
+          "[daemon][kill]") {
   test::RigFixture f("term", 120, 0.0);
-  const std::string gs360 = std::string(GS360_BINARY_DIR) + "/cli/gs360";
-  const auto config_path = f.dir / "run.json";
-  std::ofstream(config_path) << RunConfigToJson(f.config).dump(2);
-  const auto log = f.dir / "runner.log";
-  const pid_t runner =
-      Spawn({gs360, "run", "--db", f.db.string(), "start", config_path.string()}, log);
-  // Wait until it is probing, then ask it to stop.
-  for (int i = 0; i < 600; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(100));
-    if (!std::filesystem::exists(f.db)) continue;
-    RunDatabaseOptions ro;
-    ro.read_only = true;
-    try {
-      if (RunDatabase(f.db, ro).CountProbes(1).captured >= 3) break;
-    } catch (const std::exception&) {
-    }
-  }
-  kill(runner, SIGTERM);
-  const int rc = WaitFor(runner, std::chrono::seconds(60));
-  CHECK(rc == 3);  // stopped, resumable
-  RunDatabase db(f.db);
+  auto daemon = test::StartDaemonProcess(f);
+  cli::DaemonClient client(daemon->url(), "");
+  client.Post("/api/v1/runs", {{"probes", 120}});
+  client.Post("/api/v1/runs/1/start");
+  WaitFor(client, 1, [](const Json& r) { return r["probes_done"].get<int>() >= 3; });
+  CHECK(daemon->Stop() == 0);
+  RunDatabase db = ReadOnly(f.dir / "data" / "gs360.db");
   CHECK(db.GetRun(1)->state == RunState::kInterrupted);
-  // Retracted: the tool is at a retract (approach) position, not pressing.
-  const Eigen::Vector3d at = f.rig->cnc().TruePositionNow();
-  double nearest = 1e9;
-  for (const auto& p : db.ListProbes(1))
-    nearest = std::min(nearest, (p.plan.retract_machine - at).norm());
-  INFO("true position " << at.transpose() << ", nearest retract " << nearest << " mm");
-  CHECK(nearest < 0.005);  // G-code carries 3 decimals; any other position is mm away
+  CHECK(db.GetRun(1)->last_error.empty());
+  const auto captured = db.ListCapturedProbes(1);
+  CHECK(db.ListFrames(1, FrameKind::kPress).size() == captured.size());
+  // Retracted: the ball is clear of the gel.
+  const Eigen::Vector3d ball = f.rig->rig()->BallCenterSensor(f.rig->cnc().TruePositionNow());
+  const TravelPlanner travel(MakeRigGeometry(f.config.rig), f.config.plan);
+  CHECK(travel.ToolGaps(ball).ball > 0.5);
+}
+
+TEST_CASE("a second gs360d on the same data folder or the same machine port refuses to start",
+          "[daemon][lock]") {
+  test::RigFixture f("second", 40, 0.0);
+  auto first = test::StartDaemonProcess(f);
+  const std::string gs360d = std::string(GS360_BINARY_DIR) + "/daemon/gs360d";
+  // The same configuration: the data folder is taken.
+  const auto log = f.dir / "second.log";
+  CHECK_THROWS_WITH(cli::DaemonProcess(gs360d, f.dir / "gs360d.toml", f.dir / "data", log,
+                                       std::chrono::seconds(20)),
+                    Catch::Contains("data folder") &&
+                        Catch::Contains("in use by gs360d pid " + std::to_string(first->pid())));
+  // Another data folder, the same machine: the port is taken.
+  const auto other = f.dir / "other.toml";
+  std::ofstream(other) << test::RigToml(f.config).replace(
+      0, std::string("data_dir = \"data\"").size(), "data_dir = \"data2\"");
+  CHECK_THROWS_WITH(
+      cli::DaemonProcess(gs360d, other, f.dir / "data2", log, std::chrono::seconds(20)),
+      Catch::Contains("machine port") && Catch::Contains(first->url()));
+  // The first is unharmed.
+  cli::DaemonClient client(first->url(), "");
+  CHECK(client.Get("/api/v1/info")["name"] == "gs360d");
+  CHECK(first->Stop() == 0);
 }

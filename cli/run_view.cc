@@ -1,0 +1,155 @@
+#include "cli/run_view.h"
+
+#include <chrono>
+#include <string>
+#include <thread>
+
+#include "calib/report.h"
+#include "cli/progress.h"
+#include "daemon/run_engine.h"
+#include "gcode/grbl_client.h"
+
+namespace gs360::cli {
+namespace {
+
+using Json = nlohmann::json;
+
+double Number(const Json& j, const char* key, double fallback = -1.0) {
+  return j.contains(key) && j[key].is_number() ? j[key].get<double>() : fallback;
+}
+
+long long Count(const Json& j, const char* key) {
+  return j.contains(key) && j[key].is_number_integer() ? j[key].get<long long>() : 0;
+}
+
+std::string Text(const Json& j, const char* key) {
+  return j.contains(key) && j[key].is_string() ? j[key].get<std::string>() : std::string();
+}
+
+bool Active(const Json& run) {
+  const std::string state = Text(run, "state");
+  return state == "running" || state == "starting";
+}
+
+// The API's view as the ProgressPrinter's input.
+RunProgress ProgressOf(const Json& run) {
+  RunProgress p;
+  p.run_id = Count(run, "id");
+  p.counts.total = Count(run, "probes_total") + Count(run, "probes_skipped");
+  p.counts.captured = Count(run, "probes_done");
+  p.counts.failed = Count(run, "probes_failed");
+  p.counts.skipped = Count(run, "probes_skipped");
+  p.elapsed_s = Number(run, "elapsed_s", 0.0);
+  p.eta_s = Number(run, "eta_s");
+  p.probes_per_hour = Number(run, "rate_per_h", 0.0);
+  p.phase = Text(run, "phase");
+  if (p.phase.empty()) p.phase = Text(run, "state");
+  return p;
+}
+
+}  // namespace
+
+void PrintRun(std::FILE* out, const Json& run) {
+  std::string line = "run " + std::to_string(Count(run, "id")) + " " + Text(run, "name") + "  " +
+                     Text(run, "state") + "  " + std::to_string(Count(run, "probes_done")) + "/" +
+                     std::to_string(Count(run, "probes_total")) + " probes (" +
+                     std::to_string(Count(run, "probes_failed")) + " failed, " +
+                     std::to_string(Count(run, "probes_skipped")) + " skipped)  elapsed " +
+                     FormatDuration(Number(run, "elapsed_s", 0.0));
+  if (Number(run, "eta_s") >= 0 && Text(run, "state") != "done") {
+    line += "  ETA " + FormatDuration(Number(run, "eta_s"));
+  }
+  if (Number(run, "rate_per_h") > 0) {
+    line += "  " + std::to_string(static_cast<long long>(Number(run, "rate_per_h"))) + " probes/h";
+  }
+  if (!Text(run, "machine_state").empty()) line += "  machine " + Text(run, "machine_state");
+  if (!Text(run, "calibration").empty()) line += "  calibration " + Text(run, "calibration");
+  std::fprintf(out, "%s\n", line.c_str());
+  if (!Text(run, "last_error").empty()) {
+    std::fprintf(out, "  last error: %s\n", Text(run, "last_error").c_str());
+  }
+}
+
+void PrintPlan(std::FILE* out, const Json& plan) {
+  std::fprintf(out, "plan: %lld probes of %lld candidates, estimated %s of machine time\n",
+               Count(plan, "probes_total"), Count(plan, "candidates"),
+               FormatDuration(Number(plan, "estimate_s", 0.0)).c_str());
+  if (plan.contains("dropped") && plan["dropped"].is_object()) {
+    std::string dropped;
+    for (const auto& [reason, n] : plan["dropped"].items()) {
+      if (n.is_number_integer() && n.get<long long>() > 0) {
+        dropped += " " + reason + " " + std::to_string(n.get<long long>());
+      }
+    }
+    if (!dropped.empty()) std::fprintf(out, "  dropped:%s\n", dropped.c_str());
+  }
+}
+
+int ExitCodeOfRun(const Json& run) {
+  return Text(run, "state") == "done" ? kExitOk : kExitRunStopped;
+}
+
+Json WatchRun(DaemonClient& client, std::int64_t run_id, std::FILE* out, std::FILE* progress_out) {
+  ProgressPrinter printer(progress_out);
+  const std::string path = "/api/v1/runs/" + std::to_string(run_id);
+  Json run = client.Get(path);
+  // A start was just accepted: give the daemon a moment to mark the run running.
+  for (int i = 0; i < 20 && !Active(run) && Text(run, "state") == "created"; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    run = client.Get(path);
+  }
+  while (Active(run)) {
+    printer.Update(ProgressOf(run));
+    std::this_thread::sleep_for(std::chrono::milliseconds(500));
+    run = client.Get(path);
+  }
+  printer.Finish();
+  PrintRun(out, run);
+  return run;
+}
+
+Json WatchCalibration(DaemonClient& client, std::int64_t run_id, std::FILE* out) {
+  const std::string path = "/api/v1/runs/" + std::to_string(run_id) + "/calibration";
+  const auto t0 = std::chrono::steady_clock::now();
+  std::string last_stage;
+  Json view;
+  for (;;) {
+    view = client.Get(path);
+    const std::string stage = Text(view, "stage");
+    if (!stage.empty() && stage != last_stage) {
+      std::string state;
+      for (const auto& s : view.value("stages", Json::array())) {
+        if (Text(s, "name") == stage) state = Text(s, "state");
+      }
+      const double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      std::fprintf(out, "  [%7.1f s] %-12s %s\n", t, stage.c_str(), state.c_str());
+      std::fflush(out);
+      last_stage = stage;
+    }
+    if (Text(view, "state") != "running") break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  }
+  std::fprintf(out, "\nstages:\n");
+  for (const auto& s : view.value("stages", Json::array())) {
+    std::fprintf(out, "  %-12s %-8s %8.2f s\n", Text(s, "name").c_str(), Text(s, "state").c_str(),
+                 Number(s, "seconds", 0.0));
+  }
+  if (Text(view, "state") == "done") {
+    std::fprintf(out, "\n%s", FormatValidationTable(view["validation"]).c_str());
+    std::fprintf(out, "\ntargets:\n");
+    for (const auto& t : view.value("targets", Json::array())) {
+      const bool known = t.contains("value") && t["value"].is_number();
+      std::fprintf(out, "  %-28s %10s %-4s (target <= %g %s, %s truth)  %s\n",
+                   Text(t, "name").c_str(),
+                   known ? FormatFixed(t["value"].get<double>(), 4).c_str() : "-",
+                   Text(t, "unit").c_str(), Number(t, "target", 0.0), Text(t, "unit").c_str(),
+                   Text(t, "truth").c_str(), t.value("pass", false) ? "pass" : "FAIL");
+    }
+  } else {
+    std::fprintf(out, "\ncalibration %s: %s\n", Text(view, "state").c_str(),
+                 Text(view, "error").c_str());
+  }
+  return view;
+}
+
+}  // namespace gs360::cli

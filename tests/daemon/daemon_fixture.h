@@ -1,0 +1,67 @@
+#pragma once
+// A virtual rig with gs360d serving it: in this process (Daemon + HttpApi on a free loopback
+// port) or as a child process (the gs360d binary), for the API and end-to-end tests.
+
+#include <fstream>
+#include <memory>
+#include <string>
+#include <thread>
+
+#include "cli/daemon_process.h"
+#include "daemon/daemon.h"
+#include "daemon/http_api.h"
+#include "rig_fixture.h"
+// After Eigen: <resolv.h>, which httplib.h includes, defines a macro `_res` that Eigen's product
+// kernels use as a parameter name.
+#include <httplib.h>
+
+namespace gs360::test {
+
+// The gs360d.toml of a fixture's rig.
+inline std::string RigToml(const RunConfig& config, const std::string& extra = "") {
+  return "data_dir = \"data\"\n" + extra + "\n[server]\nport = 0\n[machine]\nuri = \"" +
+         config.machine.uri + "\"\n[camera]\nuri = \"" + config.camera.uri +
+         "\"\n[engine]\nreconnect_timeout_s = 10\n[plan]\nreference_every = 25\n";
+}
+
+// Daemon and HTTP server in this process.
+struct InProcessDaemon {
+  std::unique_ptr<Daemon> daemon;
+  std::unique_ptr<HttpApi> api;
+  std::thread server;
+  std::string url;
+
+  explicit InProcessDaemon(DaemonConfig config) {
+    daemon = std::make_unique<Daemon>(std::move(config));
+    api = std::make_unique<HttpApi>(*daemon, daemon->config().server);
+    api->Bind();
+    url = api->Url();
+    daemon->SetUrl(url);
+    server = std::thread([this] { api->Serve(); });
+  }
+  ~InProcessDaemon() {
+    daemon->Shutdown();
+    api->Stop();
+    if (server.joinable()) server.join();
+  }
+  httplib::Client Client() const {
+    httplib::Client c(url);
+    c.set_read_timeout(120, 0);
+    return c;
+  }
+};
+
+inline DaemonConfig ConfigFor(const RigFixture& f, const std::string& extra = "") {
+  return DaemonConfigFromToml(RigToml(f.config, extra), "test.toml", f.dir);
+}
+
+// The gs360d binary on a fixture's rig.
+inline std::unique_ptr<cli::DaemonProcess> StartDaemonProcess(const RigFixture& f,
+                                                              const std::string& extra = "") {
+  const auto config = f.dir / "gs360d.toml";
+  std::ofstream(config) << RigToml(f.config, extra);
+  return std::make_unique<cli::DaemonProcess>(std::string(GS360_BINARY_DIR) + "/daemon/gs360d",
+                                              config, f.dir / "data", f.dir / "gs360d.log");
+}
+
+}  // namespace gs360::test

@@ -1,0 +1,148 @@
+// The daemon's parts on their own: instance locks, the safety guard, the event hub.
+
+#include <catch2/catch.hpp>
+
+#include <unistd.h>
+
+#include <fstream>
+#include <thread>
+
+#include "base/json_reader.h"
+#include "daemon/event_hub.h"
+#include "daemon/instance_lock.h"
+#include "daemon/run_engine.h"
+#include "daemon/safety.h"
+#include "gcode/probe_program.h"
+#include "rig_fixture.h"
+
+using namespace gs360;
+
+TEST_CASE("an instance lock is exclusive and names its holder", "[daemon][lock]") {
+  const auto dir = test::FreshDir("lock");
+  const auto file = dir / "gs360d.lock";
+  InstanceLock first = InstanceLock::Acquire(file, "the data folder X", "gs360d pid 1 at URL");
+  CHECK(first.Held());
+  // A second open of the file (as another process would) cannot take it.
+  try {
+    InstanceLock::Acquire(file, "the data folder X", "second");
+    FAIL("the second lock was granted");
+  } catch (const LockHeldError& e) {
+    CHECK(e.holder() == "gs360d pid 1 at URL");
+    CHECK_THAT(e.what(), Catch::Contains("the data folder X is in use by gs360d pid 1 at URL"));
+  }
+  first.SetHolder("gs360d pid 1 at http://127.0.0.1:7360");
+  try {
+    InstanceLock::Acquire(file, "the data folder X", "second");
+    FAIL("the second lock was granted");
+  } catch (const LockHeldError& e) {
+    CHECK(e.holder() == "gs360d pid 1 at http://127.0.0.1:7360");
+  }
+  first.Release();
+  InstanceLock second = InstanceLock::Acquire(file, "the data folder X", "second");
+  CHECK(second.Held());
+  std::filesystem::remove_all(dir);
+}
+
+TEST_CASE("a machine port's lock follows symlinks to the device", "[daemon][lock]") {
+  const auto dir = test::FreshDir("portlock");
+  std::ofstream(dir / "ttyUSB0") << "";
+  std::filesystem::create_symlink(dir / "ttyUSB0", dir / "by-id-cnc");
+  CHECK(MachineLockPath((dir / "ttyUSB0").string(), dir) ==
+        MachineLockPath((dir / "by-id-cnc").string(), dir));
+  CHECK(MachineLockPath("tcp://10.0.0.5:23", dir) != MachineLockPath("tcp://10.0.0.6:23", dir));
+  CHECK(MachineLockPath("tcp://10.0.0.5:23", dir).parent_path() == dir);
+  std::filesystem::remove_all(dir);
+}
+
+TEST_CASE("the safety guard refuses lines outside the limits, naming the limit",
+          "[daemon][safety]") {
+  RunConfig config;
+  const RigGeometry rig = MakeRigGeometry(config.rig);
+  auto travel = std::make_shared<TravelPlanner>(rig, config.plan);
+  SafetyLimits limits;
+  limits.envelope_min = {-250.0, -150.0, -45.0};
+  limits.max_feed_mm_per_min = 1000.0;
+  limits.max_press_depth = 1.0;
+  const SafetyGuard guard(limits, travel, config.rig.ball_radius, config.rig.gel_thickness);
+  CHECK(guard.MaxDepth() == 1.0);
+
+  // A press 1.0 mm deep on the wall's outward normal at mid-height passes; 1.5 mm does not.
+  const Eigen::Vector3d p(10.0, 0.0, 15.0), n(1.0, 0.0, 0.0);
+  const Eigen::Vector3d approach = travel->MachineFromBall(p + n * 3.0);
+  const auto press_at = [&](double depth) {
+    return MachineMoveLine(travel->MachineFromBall(p + n * (2.0 - depth)), 120.0);
+  };
+  CHECK_FALSE(guard.CheckLine(press_at(1.0), approach));
+  const auto deep = guard.CheckLine(press_at(1.5), approach);
+  REQUIRE(deep);
+  CHECK_THAT(*deep,
+             Catch::Contains("1.500 mm into the gel") && Catch::Contains("limits.max_press_depth"));
+  // The envelope, per axis.
+  const auto out = guard.CheckLine("G53 G0 X-260.000 Y-90.000 Z-10.000", approach);
+  REQUIRE(out);
+  CHECK_THAT(*out, Catch::Contains("X -260.000 is below limits.envelope_min.x = -250.000"));
+  CHECK(guard.CheckLine("G53 G0 X-100.000 Y-90.000 Z1.000", approach).has_value());
+  // Feeds, work coordinates and unknown words.
+  CHECK_THAT(*guard.CheckLine("G53 G1 X-100 Y-90 Z-10 F2000", approach),
+             Catch::Contains("limits.max_feed_mm_per_min"));
+  CHECK_THAT(*guard.CheckLine("G0 X-100 Y-90 Z-10", approach), Catch::Contains("G53"));
+  CHECK_THAT(*guard.CheckLine("G53 G0 X-100 Y-90 Z-10 M3", approach), Catch::Contains("M3"));
+  // Lines without motion pass.
+  CHECK_FALSE(guard.CheckLine("G4 P0.300", approach));
+  CHECK_FALSE(guard.CheckLine("G21", approach));
+  CHECK_FALSE(guard.CheckLine("$H", approach));
+  // A straight move that would cut through the sensor is caught along the way.
+  const Eigen::Vector3d other = travel->MachineFromBall(Eigen::Vector3d(-13.0, 0.0, 15.0));
+  CHECK(guard.CheckLine(MachineMoveLine(other), approach).has_value());
+}
+
+TEST_CASE("a plan that breaks a safety limit is refused at creation, naming the probe",
+          "[daemon][safety]") {
+  RunConfig config;
+  config.machine.uri = "unused";
+  config.camera.uri = "unused";
+  config.plan.probe_count = 80;
+  SafetyLimits limits;
+  CHECK_NOTHROW(RunEngine::PlanRun(config, &limits));
+  limits.max_press_depth = 0.8;  // the plan presses 1.0 mm
+  try {
+    RunEngine::PlanRun(config, &limits);
+    FAIL("the plan was accepted");
+  } catch (const ConfigError& e) {
+    CHECK(e.field() == "plan");
+    CHECK_THAT(e.what(), Catch::Contains("probe 0") && Catch::Contains("limits.max_press_depth"));
+  }
+  limits = SafetyLimits{};
+  limits.envelope_max.z() = -20.0;  // the upper presses need more height
+  CHECK_THROWS_WITH(RunEngine::PlanRun(config, &limits), Catch::Contains("limits.envelope_max.z"));
+  limits = SafetyLimits{};
+  limits.max_feed_mm_per_min = 100.0;  // the press feed is 120
+  CHECK_THROWS_WITH(RunEngine::PlanRun(config, &limits),
+                    Catch::Contains("F120.0") && Catch::Contains("limits.max_feed_mm_per_min"));
+}
+
+TEST_CASE("the event hub delivers in order, keeps the recent ones and wakes on close",
+          "[daemon][events]") {
+  EventHub hub(16);
+  CHECK(hub.WaitAfter(0, std::chrono::milliseconds(10)).empty());
+  for (int i = 0; i < 20; ++i) hub.Publish("log", {{"i", i}});
+  CHECK(hub.LastId() == 20);
+  const auto kept = hub.WaitAfter(0, std::chrono::milliseconds(0));
+  REQUIRE(kept.size() == 16);  // the oldest fell out
+  CHECK(kept.front().id == 5);
+  CHECK(kept.back().data["i"] == 19);
+  CHECK(hub.WaitAfter(18, std::chrono::milliseconds(0)).size() == 2);
+
+  std::vector<HubEvent> got;
+  std::thread waiter([&] { got = hub.WaitAfter(20, std::chrono::seconds(30)); });
+  hub.Publish("progress", {{"run", 1}});
+  waiter.join();
+  REQUIRE(got.size() == 1);
+  CHECK(got[0].type == "progress");
+
+  std::thread closed([&] { got = hub.WaitAfter(21, std::chrono::seconds(30)); });
+  hub.Close();
+  closed.join();
+  CHECK(got.empty());
+  CHECK(hub.Closed());
+}
