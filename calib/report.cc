@@ -537,6 +537,7 @@ Json ValidationTargets(const Json& v) {
     out.push_back({{"name", name},
                    {"truth", truth},
                    {"value", known ? *value : Json(nullptr)},
+                   {"comparison", "<="},
                    {"target", target},
                    {"unit", unit},
                    {"pass", known && value->get<double>() <= target}});

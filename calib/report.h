@@ -37,8 +37,9 @@ std::string FormatValidationTable(const nlohmann::json& validation);
 // The accuracy targets against the validation's best truth (physical when present, else rigid)
 // and default integrator: mean depth error <= 0.030 mm, the > 50 deg band <= 0.050 mm, peak
 // indentation error <= 0.050 mm, median normal error <= 3 deg, and with a physical truth the
-// camera pose within 0.05 mm and 0.05 deg. An array of {"name", "value", "target", "unit",
-// "pass"}; a figure the validation lacks has value null and pass false. Never throws.
+// camera pose within 0.05 mm and 0.05 deg. An array of {"name", "value", "comparison" ("<="),
+// "target", "unit", "pass", "truth"}; a figure the validation lacks has value null and pass
+// false. Never throws.
 nlohmann::json ValidationTargets(const nlohmann::json& validation);
 
 // The HTML page: title, stage table, validation tables, training curve (inline SVG, log-scale

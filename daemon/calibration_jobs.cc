@@ -260,25 +260,43 @@ void CalibrationJobs::Save(const Job& job) const {
                       ViewOf(job).dump(1));
 }
 
-std::optional<nlohmann::json> CalibrationJobs::View(std::int64_t run_id) const {
+std::optional<std::string> CalibrationJobs::State(std::int64_t run_id) const {
   {
     std::lock_guard lock(mutex_);
     const auto it = jobs_.find(run_id);
-    if (it != jobs_.end()) return ViewOf(*it->second);
+    if (it != jobs_.end()) return it->second->state;
   }
+  const auto view = View(run_id);
+  if (!view) return std::nullopt;
+  return view->value("state", "");
+}
+
+void CalibrationJobs::Forget(std::int64_t run_id) {
+  std::lock_guard lock(mutex_);
+  if (running_ && running_->run_id == run_id) return;
+  jobs_.erase(run_id);
+  loaded_.erase(run_id);
+}
+
+std::optional<nlohmann::json> CalibrationJobs::View(std::int64_t run_id) const {
+  std::lock_guard lock(mutex_);
+  const auto it = jobs_.find(run_id);
+  if (it != jobs_.end()) return ViewOf(*it->second);
+  const auto cached = loaded_.find(run_id);
+  if (cached != loaded_.end()) return cached->second;
   // A job of an earlier daemon: its file.
   const std::filesystem::path path = runs_dir_ / std::to_string(run_id) / "calibration.json";
   std::ifstream in(path, std::ios::binary);
-  if (!in) return std::nullopt;
+  if (!in) return loaded_[run_id] = std::nullopt;
   std::stringstream ss;
   ss << in.rdbuf();
   nlohmann::json view = nlohmann::json::parse(ss.str(), nullptr, false);
-  if (view.is_discarded() || !view.is_object()) return std::nullopt;
+  if (view.is_discarded() || !view.is_object()) return loaded_[run_id] = std::nullopt;
   if (view.value("state", "") == "running") {
     view["state"] = "interrupted";
     view["error"] = "the daemon stopped during this calibration; calibrate again to continue";
   }
-  return view;
+  return loaded_[run_id] = view;
 }
 
 }  // namespace gs360

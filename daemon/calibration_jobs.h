@@ -48,6 +48,10 @@ class CalibrationJobs {
   // The run's last calibration (running, done, failed, stopped or interrupted); nullopt if it was
   // never calibrated by this data folder's daemon.
   std::optional<nlohmann::json> View(std::int64_t run_id) const;
+  // View()'s state alone ("running", "done", ...), cheap enough for every status poll.
+  std::optional<std::string> State(std::int64_t run_id) const;
+  // Drops what is known of a deleted run.
+  void Forget(std::int64_t run_id);
   void Stop();
 
  private:
@@ -63,6 +67,8 @@ class CalibrationJobs {
   mutable std::mutex mutex_;
   std::map<std::int64_t, std::shared_ptr<Job>> jobs_;  // this daemon's jobs, by run
   std::shared_ptr<Job> running_;
+  // Views read from the files of earlier daemons' jobs, by run (nullopt: no file).
+  mutable std::map<std::int64_t, std::optional<nlohmann::json>> loaded_;
   std::thread thread_;
   std::atomic<bool> stop_{false};
 };

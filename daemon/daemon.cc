@@ -231,10 +231,34 @@ Json Daemon::Info() const {
 }
 
 Json Daemon::ListRuns() const {
-  RunDatabase& db = Reader();
   Json runs = Json::array();
-  for (const RunRecord& run : db.ListRuns()) runs.push_back(RunView(run, db.CountProbes(run.id)));
+  for (const RunRecord& run : Reader().ListRuns()) {
+    if (auto view = GetRun(run.id)) runs.push_back(std::move(*view));
+  }
   return {{"runs", runs}};
+}
+
+Json Daemon::RunStatic(RunDatabase& db, std::int64_t run_id) const {
+  {
+    std::lock_guard lock(mutex_);
+    const auto it = run_static_.find(run_id);
+    if (it != run_static_.end()) return it->second;
+  }
+  Json facts = Json::object();
+  try {
+    const RunConfig config = StoredRunConfig(db, run_id);
+    facts["shape"] = config.rig.mesh_path.empty()
+                         ? Json(std::string(SensorShapeName(config.rig.shape.shape)))
+                         : Json("mesh");
+    const ProbePlan plan = RunEngine::LoadPlan(db, run_id);
+    facts["candidates"] = plan.candidates;
+    facts["estimate_s"] = plan.estimate.Total();
+  } catch (const std::exception&) {
+    // A run created by another tool: its counts still hold.
+  }
+  std::lock_guard lock(mutex_);
+  run_static_[run_id] = facts;
+  return facts;
 }
 
 std::optional<Json> Daemon::GetRun(std::int64_t run_id) const {
@@ -242,27 +266,14 @@ std::optional<Json> Daemon::GetRun(std::int64_t run_id) const {
   const auto run = db.GetRun(run_id);
   if (!run) return std::nullopt;
   Json view = RunView(*run, db.CountProbes(run_id));
-  try {
-    const RunConfig config = StoredRunConfig(db, run_id);
-    view["shape"] = config.rig.mesh_path.empty()
-                        ? Json(std::string(SensorShapeName(config.rig.shape.shape)))
-                        : Json("mesh");
-    const ProbePlan plan = RunEngine::LoadPlan(db, run_id);
-    view["candidates"] = plan.candidates;
-    view["estimate_s"] = plan.estimate.Total();
-  } catch (const std::exception&) {
-    // A run created by another tool: the counts above still hold.
-  }
+  view.update(RunStatic(db, run_id));
   if (!view["eta_s"].is_number() && view.contains("estimate_s") && !IsTerminal(run->state)) {
     const double total = static_cast<double>(std::max<std::int64_t>(1, view["probes_total"]));
     view["eta_s"] = view["estimate_s"].get<double>() *
                     static_cast<double>(view["probes_pending"].get<std::int64_t>()) / total;
   }
-  if (const auto calibration = calibration_->View(run_id)) {
-    view["calibration"] = (*calibration)["state"];
-  } else {
-    view["calibration"] = nullptr;
-  }
+  const auto calibration = calibration_->State(run_id);
+  view["calibration"] = calibration ? Json(*calibration) : Json(nullptr);
   return view;
 }
 

@@ -25,6 +25,7 @@
 #include <condition_variable>
 #include <cstdint>
 #include <filesystem>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -120,6 +121,9 @@ class Daemon {
   nlohmann::json RunView(const RunRecord& run, const ProbeCounts& counts) const;
   std::filesystem::path RunDir(std::int64_t run_id) const;
   std::optional<std::filesystem::path> MeshPath(const std::string& id) const;
+  // What never changes about a run (its sensor, candidates, estimate), read once: a status poll
+  // must not parse the stored plan.
+  nlohmann::json RunStatic(RunDatabase& db, std::int64_t run_id) const;
 
   DaemonConfig config_;
   InstanceLock data_lock_;
@@ -135,6 +139,7 @@ class Daemon {
   RunProgress progress_;  // of the active run
   double last_progress_event_ = 0.0;
   std::string url_;
+  mutable std::map<std::int64_t, nlohmann::json> run_static_;
 
   std::atomic<bool> stopping_{false};
   std::mutex pump_mutex_;

@@ -220,6 +220,8 @@ ActionResult Daemon::Delete(std::int64_t run_id) {
   }
   if (calibration_->Running() == run_id) return Conflict("run is being calibrated", run->state);
   db.DeleteRun(run_id);
+  run_static_.erase(run_id);
+  calibration_->Forget(run_id);
   std::error_code ec;
   std::filesystem::remove_all(RunDir(run_id), ec);
   spdlog::info("deleted run {}", run_id);
@@ -306,6 +308,7 @@ void Daemon::OnProgress(const RunProgress& p) {
             {"probes_done", p.counts.captured},
             {"probes_total", p.counts.total - p.counts.skipped},
             {"probes_failed", p.counts.failed},
+            {"probes_skipped", p.counts.skipped},
             {"elapsed_s", p.elapsed_s},
             {"eta_s", p.eta_s >= 0 ? Json(p.eta_s) : Json(nullptr)},
             {"rate_per_h", p.probes_per_hour > 0 ? Json(p.probes_per_hour) : Json(nullptr)},
@@ -344,7 +347,8 @@ void Daemon::PumpEvents() {
                   {"message", e.message}};
         std::string type = "log";
         if (e.level == EventLevel::kWarning) type = "warning";
-        if (e.level == EventLevel::kError) type = "error";
+        // Not "error": EventSource gives that name to a lost connection.
+        if (e.level == EventLevel::kError) type = "failure";
         if (e.message.find("ALARM") != std::string::npos) type = "alarm";
         // A state change carries {"from", "state"} (RunDatabase::SetRunState).
         const Json extra = e.data_json.empty() ? Json() : Json::parse(e.data_json, nullptr, false);

@@ -324,7 +324,15 @@ Step RunSession::SendAndSync(const std::vector<std::string>& lines, Clock::time_
   std::vector<GrblHandle> handles;
   handles.reserve(lines.size());
   for (const std::string& line : lines) handles.push_back(client_->Send(line));
-  const GrblReply last = client_->WaitForOk(handles.back(), Ms(config_.engine.sync_timeout_s));
+  // An alarm on an earlier line leaves the later ones unanswered (GRBL flushes nothing and waits
+  // for a reset): stop waiting as soon as the controller is in alarm or gone, not at the timeout.
+  const auto deadline = Clock::now() + Ms(config_.engine.sync_timeout_s);
+  GrblReply last;
+  for (;;) {
+    last = client_->WaitForOk(handles.back(), std::chrono::milliseconds(100));
+    if (last.kind != GrblReplyKind::kTimeout) break;
+    if (client_->Alarmed() || !client_->Connected() || Clock::now() >= deadline) break;
+  }
   Step step = Classify(handles);
   if (step.kind == StepKind::kOk) *sync_at = last.received_at;
   return step;

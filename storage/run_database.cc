@@ -711,7 +711,7 @@ struct RunDatabase::Impl : Connection {
   }
 
   void RequireRun(std::int64_t run_id) const {
-    Stmt s = Prepare("SELECT 1 FROM runs WHERE id = ?");
+    Stmt s = Prepare("SELECT 1 FROM runs WHERE id = ? AND deleted_at IS NULL");
     s.Int(1, run_id);
     if (!s.Step()) Throw(StorageErrc::kNotFound, "no run with id " + std::to_string(run_id));
   }
@@ -812,7 +812,7 @@ struct RunDatabase::Impl : Connection {
   }
 
   std::optional<RunRecord> Run(std::int64_t run_id) const {
-    Stmt s = Prepare("SELECT " GS360_RUN_COLUMNS " FROM runs WHERE id = ?");
+    Stmt s = Prepare("SELECT " GS360_RUN_COLUMNS " FROM runs WHERE id = ? AND deleted_at IS NULL");
     s.Int(1, run_id);
     if (!s.Step()) return std::nullopt;
     return ReadRun(s);
@@ -877,7 +877,8 @@ std::optional<RunRecord> RunDatabase::GetRun(std::int64_t run_id) const {
 
 std::vector<RunRecord> RunDatabase::ListRuns() const {
   std::vector<RunRecord> out;
-  Stmt s = impl_->Prepare("SELECT " GS360_RUN_COLUMNS " FROM runs ORDER BY id");
+  Stmt s =
+      impl_->Prepare("SELECT " GS360_RUN_COLUMNS " FROM runs WHERE deleted_at IS NULL ORDER BY id");
   while (s.Step()) out.push_back(ReadRun(s));
   return out;
 }
@@ -950,8 +951,18 @@ void RunDatabase::DeleteRun(std::int64_t run_id) {
     c.Throw(StorageErrc::kInvalidState,
             "run " + std::to_string(run_id) + " is running; pause or cancel it first");
   }
-  Stmt s = c.Prepare("DELETE FROM runs WHERE id = ?");
-  s.Int(1, run_id).Run();
+  // The row stays as a tombstone (SQLite would give its id to the next run otherwise).
+  for (const char* sql :
+       {"DELETE FROM frames WHERE run_id = ?", "DELETE FROM probes WHERE run_id = ?",
+        "DELETE FROM events WHERE run_id = ?", "DELETE FROM artifacts WHERE run_id = ?",
+        "UPDATE models SET run_id = NULL WHERE run_id = ?"}) {
+    Stmt s = c.Prepare(sql);
+    s.Int(1, run_id).Run();
+  }
+  Stmt s = c.Prepare(
+      "UPDATE runs SET deleted_at = ?, name = '', config_json = '{}', last_error = '' WHERE id = "
+      "?");
+  s.Real(1, c.Now()).Int(2, run_id).Run();
   tx.Commit();
 }
 

@@ -241,7 +241,8 @@ class RunDatabase {
   // transaction. Throws kNotFound.
   void SetRunError(std::int64_t run_id, std::string_view message);
   // Removes the run and everything of it (probes, frames, events, artifacts; its models stay,
-  // detached). Throws kNotFound, kInvalidState while it is kRunning.
+  // detached). Its id is never given to another run. Throws kNotFound, kInvalidState while it is
+  // kRunning.
   void DeleteRun(std::int64_t run_id);
 
   // ---- plan and probes ----

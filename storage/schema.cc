@@ -105,9 +105,11 @@ CREATE TABLE models (
 );
 )sql";
 
-// The reason the run last stopped short (an alarm, a failed set-up), for the API's last_error.
+// The reason the run last stopped short (an alarm, a failed set-up), for the API's last_error;
+// and deleted runs kept as a tombstone row, so that a run id is never given out twice.
 constexpr std::string_view kVersion3 = R"sql(
 ALTER TABLE runs ADD COLUMN last_error TEXT NOT NULL DEFAULT '';
+ALTER TABLE runs ADD COLUMN deleted_at REAL;
 )sql";
 
 constexpr std::array<SchemaMigration, kSchemaVersion> kMigrations = {{

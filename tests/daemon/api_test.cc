@@ -169,7 +169,18 @@ TEST_CASE("api: plan, start, pause and resume a run, and two resumes at once get
   CHECK(c.Get("/api/v1/runs/1/frames/latest.png")->status == 200);
   CHECK(c.Get("/api/v1/runs/1/probes/99999/frame.png")->status == 404);
 
-  // The stream saw the progress advance and the state changes.
+  // The stream saw the progress advance and the state changes (the run log reaches it within
+  // the event pump's period).
+  const auto seen_done = [&] {
+    std::lock_guard lock(events_mutex);
+    for (const auto& [type, data] : events) {
+      if (type == "state" && data["state"] == "done") return true;
+    }
+    return false;
+  };
+  for (int i = 0; i < 500 && !seen_done(); ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
   stop_stream = true;
   d.daemon->events().Publish("log", {{"run", 1}});  // the stream's next chunk ends it
   stream.join();
@@ -398,4 +409,55 @@ TEST_CASE("api: with a token every request needs it, and a wrong one gets 401",
   CHECK_FALSE(SameSecret("abc", "abd"));
   CHECK_FALSE(SameSecret("abc", "abcd"));
   CHECK_FALSE(SameSecret("", "a"));
+}
+
+TEST_CASE("api: an unplugged machine interrupts the run with last_error, and resume reconnects",
+          "[daemon][api][fault]") {
+  test::RigFixture f("api-unplug", 60, 0.0, /*symlink=*/true);
+  test::InProcessDaemon d(
+      DaemonConfigFromToml(test::RigToml(f.config, "", 1.0), "test.toml", f.dir));
+  httplib::Client c = d.Client();
+  REQUIRE(PostJson(c, "/api/v1/runs", {{"probes", 60}})->status == 201);
+  REQUIRE(PostJson(c, "/api/v1/runs/1/start", Json::object())->status == 202);
+  WaitRun(c, 1, [](const Json& run) { return run["probes_done"].get<int>() >= 4; });
+  f.rig->cnc().Unplug();  // and nobody plugs it back in within the reconnect timeout
+  const Json stopped = WaitRun(c, 1, [](const Json& run) { return run["state"] == "interrupted"; });
+  REQUIRE(stopped["last_error"].is_string());
+  CHECK_THAT(stopped["last_error"].get<std::string>(),
+             Catch::Contains("did not come back") || Catch::Contains("could not recover"));
+  f.rig->cnc().Replug();  // under another /dev/pts name; the configured symlink follows it
+  REQUIRE(PostJson(c, "/api/v1/runs/1/resume", Json::object())->status == 202);
+  const Json done = WaitRun(c, 1, [](const Json& run) {
+    return run["state"] == "done" || run["state"] == "interrupted";
+  });
+  CHECK(done["state"] == "done");
+  CHECK(done["last_error"].is_null());  // cleared when it ran again
+  CHECK(done["probes_done"] == done["probes_total"]);
+}
+
+TEST_CASE("api: a machine alarm stops the run, says why, and nothing unlocks it",
+          "[daemon][api][fault]") {
+  test::RigFixture f("api-alarm", 60, 0.0);
+  test::InProcessDaemon d(test::ConfigFor(f));
+  httplib::Client c = d.Client();
+  REQUIRE(PostJson(c, "/api/v1/runs", {{"probes", 60}})->status == 201);
+  REQUIRE(PostJson(c, "/api/v1/runs/1/start", Json::object())->status == 202);
+  WaitRun(c, 1, [](const Json& run) { return run["probes_done"].get<int>() >= 3; });
+  f.rig->cnc().RaiseAlarmDuringNextMove(1, 0.5);
+  const Json stopped = WaitRun(c, 1, [](const Json& run) { return run["state"] == "interrupted"; });
+  REQUIRE(stopped["last_error"].is_string());
+  CHECK_THAT(stopped["last_error"].get<std::string>(), Catch::Contains("ALARM:1"));
+  // The controller is left in its alarm: the daemon did not clear it.
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  CHECK(f.rig->cnc().State() == GrblState::kAlarm);
+  // The log has it as an alarm.
+  const Json log = Body(c.Get("/api/v1/runs/1/log"));
+  bool alarm = false;
+  for (const Json& e : log["events"]) {
+    if (e["level"] == "error" &&
+        e["message"].get<std::string>().find("ALARM:1") != std::string::npos) {
+      alarm = true;
+    }
+  }
+  CHECK(alarm);
 }

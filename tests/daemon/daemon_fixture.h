@@ -18,10 +18,12 @@
 namespace gs360::test {
 
 // The gs360d.toml of a fixture's rig.
-inline std::string RigToml(const RunConfig& config, const std::string& extra = "") {
+inline std::string RigToml(const RunConfig& config, const std::string& extra = "",
+                           double reconnect_timeout_s = 10.0) {
   return "data_dir = \"data\"\n" + extra + "\n[server]\nport = 0\n[machine]\nuri = \"" +
          config.machine.uri + "\"\n[camera]\nuri = \"" + config.camera.uri +
-         "\"\n[engine]\nreconnect_timeout_s = 10\n[plan]\nreference_every = 25\n";
+         "\"\n[engine]\nreconnect_timeout_s = " + std::to_string(reconnect_timeout_s) +
+         "\n[plan]\nreference_every = 25\n";
 }
 
 // Daemon and HTTP server in this process.

@@ -5,6 +5,11 @@
 
 #include <catch2/catch.hpp>
 
+#include <sys/socket.h>
+#include <sys/un.h>
+#include <unistd.h>
+
+#include <cstring>
 #include <random>
 #include <set>
 #include <thread>
@@ -142,4 +147,52 @@ TEST_CASE("a second gs360d on the same data folder or the same machine port refu
   cli::DaemonClient client(first->url(), "");
   CHECK(client.Get("/api/v1/info")["name"] == "gs360d");
   CHECK(first->Stop() == 0);
+}
+
+TEST_CASE("gs360d tells systemd it is ready, pings the watchdog and reports the run's progress",
+          "[daemon][systemd]") {
+  test::RigFixture f("notify", 60, 0.0);
+  // A notification socket as systemd would give it (Type=notify, WatchdogSec=).
+  const auto socket_path = f.dir / "notify.sock";
+  const int fd = ::socket(AF_UNIX, SOCK_DGRAM | SOCK_CLOEXEC, 0);
+  REQUIRE(fd >= 0);
+  sockaddr_un addr{};
+  addr.sun_family = AF_UNIX;
+  std::strncpy(addr.sun_path, socket_path.c_str(), sizeof(addr.sun_path) - 1);
+  REQUIRE(::bind(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) == 0);
+  timeval timeout{0, 200000};
+  ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &timeout, sizeof timeout);
+  ::setenv("NOTIFY_SOCKET", socket_path.c_str(), 1);
+  ::setenv("WATCHDOG_USEC", "300000", 1);
+  auto daemon = test::StartDaemonProcess(f);
+  ::unsetenv("NOTIFY_SOCKET");
+  ::unsetenv("WATCHDOG_USEC");
+  cli::DaemonClient client(daemon->url(), "");
+  client.Post("/api/v1/runs", {{"probes", 60}});
+  client.Post("/api/v1/runs/1/start");
+
+  std::vector<std::string> messages;
+  bool ready = false, watchdog = false, progress = false;
+  for (int i = 0; i < 300 && !(ready && watchdog && progress); ++i) {
+    char buf[512];
+    const ssize_t n = ::recv(fd, buf, sizeof buf, 0);
+    if (n <= 0) continue;
+    const std::string m(buf, static_cast<std::size_t>(n));
+    messages.push_back(m);
+    if (m.find("READY=1") != std::string::npos) {
+      ready = true;
+      CHECK_THAT(m, Catch::Contains("STATUS=listening on " + daemon->url()));
+    }
+    if (m.find("WATCHDOG=1") != std::string::npos) watchdog = true;
+    if (m.find("STATUS=run 1: ") != std::string::npos && m.find(" probes") != std::string::npos) {
+      progress = true;
+    }
+  }
+  INFO("received: " << messages.size() << " messages, last "
+                    << (messages.empty() ? "" : messages.back()));
+  CHECK(ready);
+  CHECK(watchdog);
+  CHECK(progress);
+  daemon->Stop();
+  ::close(fd);
 }

@@ -545,6 +545,12 @@ TEST_CASE("last_error is kept until the run runs again, and DeleteRun removes a 
   } catch (const StorageError& e) {
     CHECK(e.code() == StorageErrc::kNotFound);
   }
+  // Ids are never given out twice, even the newest's after it is deleted.
+  db.DeleteRun(other);
+  CHECK(db.ListRuns().empty());
+  const std::int64_t next = db.CreateRun("{}", "h");
+  CHECK(next > other);
+  CHECK_THROWS_AS(db.SetRunState(other, RunState::kRunning), StorageError);
 }
 
 TEST_CASE("RunDatabaseOptions::Check names the field and the value", "[storage][db]") {

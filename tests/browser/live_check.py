@@ -1,0 +1,231 @@
+#!/usr/bin/env python3
+"""The dashboard's live path, which a DOM dump cannot see: headless Chromium driven over the
+DevTools protocol on a pipe (--remote-debugging-pipe: no port, no extra package).
+
+  live_check.py CHROMIUM PAGE_URL PROFILE_DIR CHROMIUM_LOG
+
+1. Opens PAGE_URL (the dashboard with a running run selected, streaming: no live=poll) at
+   1280x900 and waits for the header to say "live" (the EventSource is open) and for
+   #progress-done to show a number.
+2. Leaves the page alone and waits for #progress-done to grow: only the event stream (or the
+   polling fallback, which "live" rules out) can change it.
+3. Narrows the viewport to a phone's (390x844): nothing may be wider than the screen
+   (no horizontal scrolling) and the runs list must sit above the run (one column).
+
+Prints what it compares. Exit status 0: passed; 1: a check failed; 2: Chromium or the protocol
+failed. Python standard library only.
+"""
+import json
+import os
+import select
+import subprocess
+import sys
+import time
+
+
+class ProtocolError(Exception):
+    pass
+
+
+class Chromium:
+    def __init__(self, binary, profile, log_path):
+        # Chromium reads commands on fd 3 and writes answers on fd 4, NUL-terminated JSON.
+        to_chrome_r, self.to_chrome = os.pipe()
+        self.from_chrome, from_chrome_w = os.pipe()
+
+        def fds():
+            a, b = os.dup(to_chrome_r), os.dup(from_chrome_w)
+            os.dup2(a, 3)
+            os.dup2(b, 4)
+
+        self.log = open(log_path, 'ab')
+        self.proc = subprocess.Popen(
+            [binary, '--headless', '--no-sandbox', '--disable-gpu', '--disable-quic',
+             '--no-first-run', '--disable-background-networking', '--disable-component-update',
+             '--disable-sync', '--disable-dev-shm-usage', '--no-default-browser-check',
+             '--mute-audio', '--password-store=basic', '--hide-scrollbars',
+             '--remote-debugging-pipe', f'--user-data-dir={profile}', 'about:blank'],
+            stdin=subprocess.DEVNULL, stdout=self.log, stderr=self.log, preexec_fn=fds,
+            close_fds=False)
+        os.close(to_chrome_r)
+        os.close(from_chrome_w)
+        self.buffer = b''
+        self.next_id = 0
+        self.session = None
+        self.events = []  # what the page reported on its own: exceptions, console, log
+
+    def _read(self, deadline):
+        while b'\0' not in self.buffer:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise ProtocolError('Chromium did not answer in time')
+            ready, _, _ = select.select([self.from_chrome], [], [], left)
+            if not ready:
+                continue
+            chunk = os.read(self.from_chrome, 1 << 16)
+            if not chunk:
+                raise ProtocolError('Chromium closed the DevTools pipe')
+            self.buffer += chunk
+        message, self.buffer = self.buffer.split(b'\0', 1)
+        return json.loads(message)
+
+    def send(self, method, params=None, session=True, timeout=20):
+        self.next_id += 1
+        message = {'id': self.next_id, 'method': method, 'params': params or {}}
+        if session and self.session:
+            message['sessionId'] = self.session
+        os.write(self.to_chrome, json.dumps(message).encode() + b'\0')
+        deadline = time.monotonic() + timeout
+        while True:
+            answer = self._read(deadline)
+            if answer.get('id') == self.next_id:
+                if 'error' in answer:
+                    raise ProtocolError(f'{method}: {answer["error"]}')
+                return answer.get('result', {})
+            if 'method' in answer:
+                self.events.append(answer)
+
+    def open(self, url, width, height):
+        target = self.send('Target.createTarget', {'url': 'about:blank'}, session=False)
+        self.session = self.send('Target.attachToTarget',
+                                 {'targetId': target['targetId'], 'flatten': True},
+                                 session=False)['sessionId']
+        self.viewport(width, height, mobile=False)
+        self.send('Runtime.enable')
+        self.send('Log.enable')
+        self.send('Page.navigate', {'url': url})
+
+    def problems(self):
+        """Uncaught exceptions, console warnings and errors, CSP violations of the page."""
+        found = []
+        for e in self.events:
+            method, params = e.get('method'), e.get('params', {})
+            if method == 'Runtime.exceptionThrown':
+                details = params.get('exceptionDetails', {})
+                text = details.get('exception', {}).get('description') or details.get('text')
+                found.append(f'uncaught exception: {text}')
+            elif method == 'Runtime.consoleAPICalled' and params.get('type') in ('error', 'warning'):
+                args = [a.get('value', a.get('description')) for a in params.get('args', [])]
+                found.append(f'console.{params["type"]}: {args}')
+            elif method == 'Log.entryAdded':
+                entry = params.get('entry', {})
+                # Network errors are expected (no frame yet: 404); not script or CSP errors.
+                if entry.get('level') == 'error' and entry.get('source') != 'network':
+                    found.append(f'{entry.get("source")}: {entry.get("text")}')
+        return found
+
+    def viewport(self, width, height, mobile):
+        self.send('Emulation.setDeviceMetricsOverride',
+                  {'width': width, 'height': height, 'deviceScaleFactor': 1, 'mobile': mobile})
+
+    def eval(self, expression):
+        result = self.send('Runtime.evaluate', {'expression': expression, 'returnByValue': True})
+        if 'exceptionDetails' in result:
+            raise ProtocolError(f'{expression}: {result["exceptionDetails"].get("text")}')
+        return result.get('result', {}).get('value')
+
+    def close(self):
+        try:
+            self.send('Browser.close', session=False, timeout=5)
+        except (ProtocolError, OSError):
+            pass
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self.log.close()
+
+
+READ = ('(() => { const t = (id) => { const e = document.getElementById(id); '
+        'return e ? e.textContent : null; }; '
+        'return {done: t("progress-done"), total: t("progress-total"), live: t("live"), '
+        'state: t("run-state"), events: Number((document.getElementById("live") || '
+        '{dataset: {}}).dataset.events || 0)}; })()')
+
+LAYOUT = ('(() => { const r = (id) => document.getElementById(id).getBoundingClientRect(); '
+          'return {scroll: document.documentElement.scrollWidth, '
+          'client: document.documentElement.clientWidth, '
+          'sidebarBottom: r("sidebar").bottom, detailTop: r("detail").top, '
+          'sidebarWidth: r("sidebar").width, detailWidth: r("detail").width}; })()')
+
+
+def log(text):
+    print(f'live_check: {text}', flush=True)
+
+
+def wait_for(chrome, what, test, timeout):
+    deadline = time.monotonic() + timeout
+    seen = None
+    while time.monotonic() < deadline:
+        seen = chrome.eval(READ)
+        if test(seen):
+            return seen
+        time.sleep(0.25)
+    log(f'FAIL: timed out after {timeout} s waiting for {what}; the page shows {seen}')
+    sys.exit(1)
+
+
+def main():
+    if len(sys.argv) != 5:
+        print(__doc__, file=sys.stderr)
+        return 2
+    binary, url, profile, chrome_log = sys.argv[1:]
+    chrome = Chromium(binary, profile, chrome_log)
+    try:
+        chrome.open(url, 1280, 900)
+        first = wait_for(chrome, 'the event stream ("live") and a progress number',
+                         lambda s: s['live'] == 'live' and (s['done'] or '').isdigit()
+                         and int(s['done']) > 0, 30)
+        log(f'page open, event stream live: #progress-done={first["done"]} '
+            f'#progress-total={first["total"]} #run-state={first["state"]}')
+        # Past the page's start-up fetches: from here on (for 15 s) only events change the
+        # progress of a streaming page.
+        time.sleep(1.0)
+        base = chrome.eval(READ)
+        t0 = time.monotonic()
+        later = wait_for(chrome, '#progress-done to grow without a reload',
+                         lambda s: (s['done'] or '').isdigit()
+                         and int(s['done']) > int(base['done']), 10)
+        log(f'without a reload #progress-done went from {base["done"]} to {later["done"]} '
+            f'in {time.monotonic() - t0:.1f} s; events received meanwhile: '
+            f'{later["events"] - base["events"]} ({later["events"]} in all; header: '
+            f'{later["live"]})')
+        if later['live'] != 'live':
+            log(f'FAIL: the page fell back to "{later["live"]}" instead of streaming')
+            return 1
+        if later['events'] <= base['events']:
+            log('FAIL: the progress changed, but not through the event stream')
+            return 1
+
+        chrome.viewport(390, 844, mobile=True)
+        time.sleep(1.0)
+        layout = chrome.eval(LAYOUT)
+        log(f'at 390 px: document {layout["scroll"]} px wide in a {layout["client"]} px '
+            f'viewport; runs list ends at y={layout["sidebarBottom"]:.0f}, '
+            f'the run starts at y={layout["detailTop"]:.0f}')
+        if layout['scroll'] > layout['client']:
+            log('FAIL: the page scrolls sideways at a phone\'s width')
+            return 1
+        if layout['sidebarBottom'] > layout['detailTop'] + 1:
+            log('FAIL: the runs list and the run are not in one column at a phone\'s width')
+            return 1
+        chrome.eval('1')  # collects what is still in the pipe
+        problems = chrome.problems()
+        for p in problems:
+            log(f'page problem: {p}')
+        if problems:
+            log(f'FAIL: the page reported {len(problems)} problem(s): script errors or '
+                'Content-Security-Policy violations')
+            return 1
+        log('no script error, console warning or CSP violation')
+        return 0
+    except (ProtocolError, OSError) as e:
+        log(f'ERROR: {e}')
+        return 2
+    finally:
+        chrome.close()
+
+
+if __name__ == '__main__':
+    sys.exit(main())
