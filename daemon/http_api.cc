@@ -460,6 +460,9 @@ void HttpApi::Serve() {
 }
 
 void HttpApi::Stop() {
+  // Event streams would otherwise hold their worker threads (and this stop) until their next
+  // keep-alive.
+  impl_->daemon.events().Close();
   impl_->server.stop();
 }
 

@@ -41,6 +41,7 @@ class HttpApi {
   int Bind();
   // Serves until Stop() (from another thread or a signal handler's thread).
   void Serve();
+  // Stops serving; ends the event streams (closes the daemon's event hub).
   void Stop();
   // "http://127.0.0.1:7360" once bound.
   std::string Url() const;

@@ -1,6 +1,8 @@
 #include "gcode/grbl_messages.h"
 
+#include <algorithm>
 #include <charconv>
+#include <span>
 #include <system_error>
 
 namespace gs360 {
@@ -444,134 +446,192 @@ std::string_view GrblMessageKindName(GrblMessageKind kind) {
   return "unknown";
 }
 
-std::string GrblErrorText(int code) {
-  switch (code) {
-    case 1:
-      return "G-code words consist of a letter and a value. Letter was not found.";
-    case 2:
-      return "Numeric value format is not valid or missing an expected value.";
-    case 3:
-      return "Grbl '$' system command was not recognized or supported.";
-    case 4:
-      return "Negative value received for an expected positive value.";
-    case 5:
-      return "Homing cycle is not enabled via settings.";
-    case 6:
-      return "Minimum step pulse time must be greater than 3usec.";
-    case 7:
-      return "EEPROM read failed. Reset and restored to default values.";
-    case 8:
-      return "Grbl '$' command cannot be used unless Grbl is IDLE.";
-    case 9:
-      return "G-code locked out during alarm or jog state.";
-    case 10:
-      return "Soft limits cannot be enabled without homing also enabled.";
-    case 11:
-      return "Max characters per line exceeded. Line was not processed and executed.";
-    case 12:
-      return "Grbl '$' setting value exceeds the maximum step rate supported.";
-    case 13:
-      return "Safety door detected as opened and door state initiated.";
-    case 14:
-      return "Build info or startup line exceeded EEPROM line length limit.";
-    case 15:
-      return "Jog target exceeds machine travel. Command ignored.";
-    case 16:
-      return "Jog command with no '=' or contains prohibited g-code.";
-    case 17:
-      return "Laser mode requires PWM output.";
-    case 20:
-      return "Unsupported or invalid g-code command found in block.";
-    case 21:
-      return "More than one g-code command from same modal group found in block.";
-    case 22:
-      return "Feed rate has not yet been set or is undefined.";
-    case 23:
-      return "G-code command in block requires an integer value.";
-    case 24:
-      return "Two G-code commands that both require the use of the XYZ axis words were "
-             "detected in the block.";
-    case 25:
-      return "A G-code word was repeated in the block.";
-    case 26:
-      return "A G-code command implicitly or explicitly requires XYZ axis words in the "
-             "block, but none were detected.";
-    case 27:
-      return "N line number value is not within the valid range of 1 - 9,999,999.";
-    case 28:
-      return "A G-code command was sent, but is missing some required P or L value words "
-             "in the line.";
-    case 29:
-      return "Grbl supports six work coordinate systems G54-G59. G59.1, G59.2, and G59.3 "
-             "are not supported.";
-    case 30:
-      return "The G53 G-code command requires either a G0 seek or G1 feed motion mode to "
-             "be active.";
-    case 31:
-      return "There are unused axis words in the block and G80 motion mode cancel is "
-             "active.";
-    case 32:
-      return "A G2 or G3 arc was commanded but there are no XYZ axis words in the "
-             "selected plane to trace the arc.";
-    case 33:
-      return "The motion command has an invalid target.";
-    case 34:
-      return "A G2 or G3 arc, traced with the radius definition, had a mathematical error "
-             "when computing the arc geometry.";
-    case 35:
-      return "A G2 or G3 arc, traced with the offset definition, is missing the IJK "
-             "offset word in the selected plane to trace the arc.";
-    case 36:
-      return "There are unused, leftover G-code words that aren't used by any command in "
-             "the block.";
-    case 37:
-      return "The G43.1 dynamic tool length offset command cannot apply an offset to an "
-             "axis other than its configured axis.";
-    case 38:
-      return "Tool number greater than max supported value.";
-    default:
-      break;
+namespace {
+
+struct CodeText {
+  int code;
+  std::string_view text;
+};
+
+// Error codes ("error:N"). Texts are verbatim from the sources, typos included:
+//  - GRBL 1.1: gnea/grbl doc/csv/error_codes_en_US.csv (codes 1-17, 20-38).
+//  - grblHAL: grblHAL/core errors.c (status_detail[]; enum status_code_t in errors.h) for the
+//    codes GRBL 1.1 lacks; 60-66 and 70 are described by grblHAL plugins (Plugin_SD_card
+//    sdcard.c / fs_stream.c, the Bluetooth plugin), which register them with the core.
+// Where both define a code the meaning agrees but grblHAL rewords some texts (e.g. 6: "greater
+// or equal to 2 microseconds", 7: "settings" for "EEPROM", 38: "... or undefined tool
+// selected"); GRBL 1.1's text is kept for those. FluidNC numbers 18, 19 and 38 up differently
+// (its Error.h), so its texts are not used.
+constexpr CodeText kErrorTexts[] = {
+    {1, "G-code words consist of a letter and a value. Letter was not found."},
+    {2, "Missing the expected G-code word value or numeric value format is not valid."},
+    {3, "Grbl '$' system command was not recognized or supported."},
+    {4, "Negative value received for an expected positive value."},
+    {5, "Homing cycle failure. Homing is not enabled via settings."},
+    {6, "Minimum step pulse time must be greater than 3usec."},
+    {7, "An EEPROM read failed. Auto-restoring affected EEPROM to default values."},
+    {8,
+     "Grbl '$' command cannot be used unless Grbl is IDLE. Ensures smooth operation during a "
+     "job."},
+    {9, "G-code commands are locked out during alarm or jog state."},
+    {10, "Soft limits cannot be enabled without homing also enabled."},
+    {11, "Max characters per line exceeded. Received command line was not executed."},
+    {12, "Grbl '$' setting value cause the step rate to exceed the maximum supported."},
+    {13, "Safety door detected as opened and door state initiated."},
+    {14, "Build info or startup line exceeded EEPROM line length limit. Line not stored."},
+    {15, "Jog target exceeds machine travel. Jog command has been ignored."},
+    {16, "Jog command has no '=' or contains prohibited g-code."},
+    {17, "Laser mode requires PWM output."},
+    {18, "Reset asserted"},      // grblHAL
+    {19, "Non positive value"},  // grblHAL
+    {20, "Unsupported or invalid g-code command found in block."},
+    {21, "More than one g-code command from same modal group found in block."},
+    {22, "Feed rate has not yet been set or is undefined."},
+    {23, "G-code command in block requires an integer value."},
+    {24, "More than one g-code command that requires axis words found in block."},
+    {25, "Repeated g-code word found in block."},
+    {26,
+     "No axis words found in block for g-code command or current modal state which requires "
+     "them."},
+    {27, "Line number value is invalid."},
+    {28, "G-code command is missing a required value word."},
+    {29, "G59.x work coordinate systems are not supported."},
+    {30, "G53 only allowed with G0 and G1 motion modes."},
+    {31, "Axis words found in block when no command or current modal state uses them."},
+    {32, "G2 and G3 arcs require at least one in-plane axis word."},
+    {33, "Motion command target is invalid."},
+    {34, "Arc radius value is invalid."},
+    {35, "G2 and G3 arcs require at least one in-plane offset word."},
+    {36, "Unused value words found in block."},
+    {37, "G43.1 dynamic tool length offset is not assigned to configured tool length axis."},
+    {38, "Tool number greater than max supported value."},
+    // grblHAL from here on.
+    {39, "Value out of range."},
+    {40, "G-code command not allowed when tool change is pending."},
+    {41, "Spindle not running when motion commanded in CSS or spindle sync mode."},
+    {42, "Plane must be ZX for threading."},
+    {43, "Max. feed rate exceeded."},
+    {44, "RPM out of range."},
+    {45, "Only homing is allowed when a limit switch is engaged."},
+    {46, "Home machine to continue."},
+    {47, "ATC: current tool is not set. Set current tool with M61."},
+    {48, "Value word conflict."},
+    {49, "Power on self test failed. A hard reset is required."},
+    {50, "Emergency stop active."},
+    {51, "Motor fault."},
+    {52, "Setting value is out of range."},
+    {53, "Setting is not available, possibly due to limited driver support."},
+    {54, "Retract position is less than drill depth."},
+    {55, "Attempt to home two auto squared axes at the same time."},
+    {56, "Coordinate system is locked."},
+    {57, "Unexpected file demarcation."},
+    {58, "Port is not available"},
+    {60, "SD Card mount failed."},
+    // Plugin_SD_card's current text; older versions (Status_SDReadError) said "SD Card file
+    // open/read failed.".
+    {61, "File delete failed."},
+    {62, "Directory listing failed."},
+    {63, "Directory not found."},
+    {64, "SD Card not mounted."},
+    {65, "File system not mounted."},
+    {66, "File system is read only."},
+    {70, "Bluetooth initialisation failed."},
+    {71, "Unknown operation found in expression."},
+    {72, "Divide by zero in expression attempted."},
+    {73, "Too large or too small argrument provided."},
+    {74, "Argument is not valid for the operation"},
+    {75, "Expression is not valid."},
+    {76, "Either NAN (not a number) or infinity was returned from expression."},
+    {77, "Authentication required."},
+    {78, "Access denied."},
+    {79, "Not allowed while critical event is active."},
+    {80, "Flow statement only allowed in filesystem macro."},
+    {81, "Unknown flow statement."},
+    {82, "Stack overflow while executing flow statement."},
+    {83, "Out of memory while executing flow statement."},
+    {84, "Could not open file."},
+    {253, "User defined error occured."},
+};
+
+// Alarm codes ("ALARM:N"). GRBL 1.1: gnea/grbl doc/csv/alarm_codes_en_US.csv (1-10; 10 came
+// with dual-axis homing in 1.1h). grblHAL: grblHAL/core alarms.c (alarm_detail[]; enum
+// alarm_code_t in alarms.h); 1-9 are word for word GRBL's.
+// CONFLICT: grblHAL's alarm 10 is Alarm_EStop, "EStop asserted. Clear and reset"; GRBL 1.1's
+// text is kept for it, as for every code GRBL 1.1 defines.
+constexpr CodeText kAlarmTexts[] = {
+    {1,
+     "Hard limit has been triggered. Machine position is likely lost due to sudden halt. "
+     "Re-homing is highly recommended."},
+    {2,
+     "Soft limit alarm. G-code motion target exceeds machine travel. Machine position "
+     "retained. Alarm may be safely unlocked."},
+    {3,
+     "Reset while in motion. Machine position is likely lost due to sudden halt. Re-homing "
+     "is highly recommended."},
+    {4,
+     "Probe fail. Probe is not in the expected initial state before starting probe cycle "
+     "when G38.2 and G38.3 is not triggered and G38.4 and G38.5 is triggered."},
+    {5,
+     "Probe fail. Probe did not contact the workpiece within the programmed travel for G38.2 "
+     "and G38.4."},
+    {6, "Homing fail. The active homing cycle was reset."},
+    {7, "Homing fail. Safety door was opened during homing cycle."},
+    {8,
+     "Homing fail. Pull off travel failed to clear limit switch. Try increasing pull-off "
+     "setting or check wiring."},
+    {9,
+     "Homing fail. Could not find limit switch within search distances. Try increasing max "
+     "travel, decreasing pull-off distance, or check wiring."},
+    {10,
+     "Homing fail. Second dual axis limit switch failed to trigger within configured search "
+     "distance after first. Try increasing trigger fail distance or check wiring."},
+    // grblHAL from here on.
+    {11, "Homing required. Execute homing command ($H) to continue."},
+    {12, "Limit switch engaged. Clear before continuing."},
+    {13, "Probe protection triggered. Clear before continuing."},
+    {14, "Spindle at speed timeout. Clear before continuing."},
+    {15,
+     "Homing fail. Could not find second limit switch for auto squared axis within search "
+     "distances. Try increasing max travel, decreasing pull-off distance, or check wiring."},
+    {16, "Power on selftest (POS) failed."},
+    {17, "Motor fault."},
+    {18, "Homing fail. Bad configuration."},
+};
+
+// Sorted by code, no duplicates, no empty text: what LookUp relies on.
+constexpr bool StrictlySorted(std::span<const CodeText> table) {
+  for (std::size_t i = 0; i < table.size(); ++i) {
+    if (table[i].text.empty() || (i > 0 && table[i - 1].code >= table[i].code)) return false;
   }
-  return "unknown error " + std::to_string(code);
+  return true;
+}
+static_assert(StrictlySorted(kErrorTexts) && StrictlySorted(kAlarmTexts));
+
+std::optional<std::string_view> LookUp(std::span<const CodeText> table, int code) {
+  const auto it = std::lower_bound(table.begin(), table.end(), code,
+                                   [](const CodeText& e, int c) { return e.code < c; });
+  if (it == table.end() || it->code != code) return std::nullopt;
+  return it->text;
+}
+
+}  // namespace
+
+std::string GrblErrorText(int code) {
+  if (const auto text = LookUp(kErrorTexts, code)) return std::string(*text);
+  return "unknown error " + std::to_string(code) + " (not in the GRBL 1.1 or grblHAL tables)";
 }
 
 std::string GrblAlarmText(int code) {
-  switch (code) {
-    case 1:
-      return "Hard limit triggered. Machine position is likely lost due to sudden and "
-             "immediate halt. Re-homing is highly recommended.";
-    case 2:
-      return "G-code motion target exceeds machine travel. Machine position safely "
-             "retained. Alarm may be unlocked.";
-    case 3:
-      return "Reset while in motion. Grbl cannot guarantee position. Lost steps are "
-             "likely. Re-homing is highly recommended.";
-    case 4:
-      return "Probe fail. The probe is not in the expected initial state before starting "
-             "probe cycle.";
-    case 5:
-      return "Probe fail. Probe did not contact the workpiece within the programmed travel.";
-    case 6:
-      return "Homing fail. Reset during active homing cycle.";
-    case 7:
-      return "Homing fail. Safety door was opened during active homing cycle.";
-    case 8:
-      return "Homing fail. Cycle failed to clear limit switch when pulling off.";
-    case 9:
-      return "Homing fail. Could not find limit switch within search distance.";
-    case 10:
-      return "Homing fail. On dual axis machines, could not find the second limit switch "
-             "for self-squaring.";
-    default:
-      break;
-  }
-  return "unknown alarm " + std::to_string(code);
+  if (const auto text = LookUp(kAlarmTexts, code)) return std::string(*text);
+  return "unknown alarm " + std::to_string(code) + " (not in the GRBL 1.1 or grblHAL tables)";
 }
 
 bool GrblAlarmLosesPosition(int code) {
-  // 2 (soft limit: the target was refused before any motion) and 4/5 (probe fail: the probe
-  // move stops under control) keep the position; everything else, including unknown codes,
-  // does not.
+  // Only three alarms keep the position: 2 (soft limit: the target was refused before any
+  // motion; the text says "Machine position retained") and 4/5 (probe fail: no motion, or the
+  // probe move ran its programmed travel to the end). Everything else, including grblHAL's
+  // 10-18 (E-stop, homing required or failed, limit switch engaged, probe protection, spindle,
+  // self test, motor fault) and unknown codes, means the machine must be re-homed.
   return !(code == 2 || code == 4 || code == 5);
 }
 

@@ -122,12 +122,18 @@ class GrblLineSplitter {
 
 std::string_view GrblMachineStateName(GrblMachineState state);
 std::string_view GrblMessageKindName(GrblMessageKind kind);
-// GRBL's table (doc/csv/error_codes_en_US.csv); "unknown error N" otherwise.
+// The text of "error:N": GRBL 1.1's table (gnea/grbl doc/csv/error_codes_en_US.csv) extended by
+// grblHAL's (grblHAL/core errors.c and plugins: 18-19, 39-58, 60-66, 70-84, 253). GRBL 1.1's
+// wording wins where both define a code. Otherwise "unknown error N (not in the GRBL 1.1 or grblHAL
+// tables)".
 std::string GrblErrorText(int code);
-// GRBL's table (doc/csv/alarm_codes_en_US.csv); "unknown alarm N" otherwise.
+// The text of "ALARM:N": GRBL 1.1's table (doc/csv/alarm_codes_en_US.csv, 1-10) extended by
+// grblHAL's (grblHAL/core alarms.c, 11-18). Alarm 10 differs: GRBL 1.1 dual-axis homing fail,
+// grblHAL E-stop; GRBL 1.1's text is given. Otherwise "unknown alarm N (not in the ... tables)".
 std::string GrblAlarmText(int code);
-// True for alarms after which GRBL cannot guarantee the machine position (hard limit, abort
-// during motion, homing failures): the machine must be re-homed.
+// True for alarms after which the machine position cannot be trusted and the machine must be
+// re-homed: every alarm (GRBL 1.1 and grblHAL, unknown codes too) except 2 (soft limit, position
+// retained) and 4/5 (probe fail, no sudden halt).
 bool GrblAlarmLosesPosition(int code);
 
 }  // namespace gs360

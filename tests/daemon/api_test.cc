@@ -69,6 +69,7 @@ std::string RawStatus(const std::string& url, const std::string& head, std::size
       break;  // the server answered and closed: fine
     }
   }
+  ::shutdown(fd, SHUT_WR);  // the whole request is out: a server waiting for more sees the end
   std::string response;
   char buf[4096];
   for (ssize_t n; (n = ::recv(fd, buf, sizeof buf, 0)) > 0;) response.append(buf, n);
@@ -345,12 +346,6 @@ TEST_CASE("api: attacks: path-like ids, huge bodies, foreign hosts, cross-site p
                   "application/json\r\nContent-Length: " +
                       std::to_string(huge) + "\r\n\r\n",
                   huge) == "HTTP/1.1 413 Payload Too Large");
-  // Without a length (chunked), the body is cut off at the server's limit.
-  CHECK_THAT(RawStatus(d.url,
-                       "POST /api/v1/runs HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: "
-                       "application/json\r\nTransfer-Encoding: chunked\r\n\r\n2000000\r\n",
-                       huge),
-             Catch::StartsWith("HTTP/1.1 4"));
   // Cross-site posts: a form or text/plain body is refused before anything happens.
   auto r = c.Post("/api/v1/runs/1/start", "a=1", "application/x-www-form-urlencoded");
   CHECK(r->status == 415);
@@ -404,6 +399,16 @@ TEST_CASE("api: with a token every request needs it, and a wrong one gets 401",
                       token + "\r\nContent-Type: application/octet-stream\r\nContent-Length: " +
                       std::to_string(3 << 20) + "\r\n\r\n",
                   3 << 20) == "HTTP/1.1 413 Payload Too Large");
+  // Without a declared length (chunked), the body is cut off at the server's limit: the
+  // connection is closed (cpp-httplib sends no status then), nothing is stored.
+  CHECK_THAT(RawStatus(d.url,
+                  "POST /api/v1/meshes?format=stl HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                  "Authorization: Bearer " + token +
+                      "\r\nContent-Type: application/octet-stream\r\nTransfer-Encoding: "
+                      "chunked\r\n\r\n300000\r\n",
+                  3 << 20),
+             !Catch::StartsWith("HTTP/1.1 2"));
+  CHECK(Body(c.Get("/api/v1/meshes", auth))["meshes"].empty());
   CHECK(c.Get("/api/v1/info", auth)->status == 200);
   CHECK(SameSecret("abc", "abc"));
   CHECK_FALSE(SameSecret("abc", "abd"));

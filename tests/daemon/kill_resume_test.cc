@@ -9,6 +9,7 @@
 #include <sys/un.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <cstring>
 #include <random>
 #include <set>
@@ -193,6 +194,15 @@ TEST_CASE("gs360d tells systemd it is ready, pings the watchdog and reports the 
   CHECK(ready);
   CHECK(watchdog);
   CHECK(progress);
-  daemon->Stop();
+  // systemd keeps reading: a full socket would block the daemon's notifications (as it would
+  // under systemd), so drain it while the daemon stops.
+  std::atomic<bool> stopped{false};
+  std::thread drain([&] {
+    char buf[512];
+    while (!stopped) ::recv(fd, buf, sizeof buf, 0);
+  });
+  CHECK(daemon->Stop(std::chrono::seconds(60)) == 0);
+  stopped = true;
+  drain.join();
   ::close(fd);
 }

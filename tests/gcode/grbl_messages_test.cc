@@ -31,9 +31,9 @@ TEST_CASE("ok, error and alarm replies", "[grbl_messages]") {
   CHECK(a.text.find("exceeds machine travel") != std::string::npos);
 
   CHECK(gs360::GrblErrorText(9).find("locked out") != std::string::npos);
-  CHECK(gs360::GrblErrorText(99) == "unknown error 99");
+  CHECK(gs360::GrblErrorText(99) == "unknown error 99 (not in the GRBL 1.1 or grblHAL tables)");
   CHECK(gs360::GrblAlarmText(1).find("Hard limit") != std::string::npos);
-  CHECK(gs360::GrblAlarmText(42) == "unknown alarm 42");
+  CHECK(gs360::GrblAlarmText(42) == "unknown alarm 42 (not in the GRBL 1.1 or grblHAL tables)");
   CHECK(gs360::GrblAlarmLosesPosition(1));
   CHECK(gs360::GrblAlarmLosesPosition(3));
   CHECK(gs360::GrblAlarmLosesPosition(9));
@@ -252,4 +252,128 @@ TEST_CASE("line splitter handles CRLF, split chunks and overlong garbage", "[grb
   CHECK(lines[0].size() == GrblLineSplitter::kMaxLine);
   CHECK(lines[1] == "ok");
   CHECK(splitter.OverlongLines() == 1);
+}
+
+namespace {
+
+// The codes of the source tables, listed independently of gcode/grbl_messages.cc.
+// GRBL 1.1: gnea/grbl doc/csv/error_codes_en_US.csv and alarm_codes_en_US.csv.
+// grblHAL: grblHAL/core errors.h (status_code_t) with errors.c, alarms.h (alarm_code_t) with
+// alarms.c; 60-66 and 70 are described by grblHAL plugins.
+std::vector<int> Range(int first, int last) {
+  std::vector<int> v;
+  for (int c = first; c <= last; ++c) v.push_back(c);
+  return v;
+}
+
+std::vector<int> Grbl11ErrorCodes() {
+  std::vector<int> v = Range(1, 17);
+  for (int c : Range(20, 38)) v.push_back(c);
+  return v;
+}
+
+std::vector<int> GrblHalErrorCodes() {
+  std::vector<int> v = Range(1, 58);
+  for (int c : Range(60, 66)) v.push_back(c);
+  for (int c : Range(70, 84)) v.push_back(c);
+  v.push_back(253);
+  return v;
+}
+
+bool IsUnknownText(const std::string& text) {
+  return text.rfind("unknown ", 0) == 0;
+}
+
+}  // namespace
+
+TEST_CASE("every GRBL 1.1 and grblHAL error code has its text", "[gcode][messages]") {
+  for (const std::vector<int>& codes : {Grbl11ErrorCodes(), GrblHalErrorCodes()}) {
+    for (int code : codes) {
+      INFO("error " << code);
+      const std::string text = gs360::GrblErrorText(code);
+      CHECK_FALSE(text.empty());
+      CHECK_FALSE(IsUnknownText(text));
+    }
+  }
+}
+
+TEST_CASE("every GRBL 1.1 and grblHAL alarm code has its text", "[gcode][messages]") {
+  for (int code : Range(1, 18)) {  // GRBL 1.1: 1-10; grblHAL: 1-18
+    INFO("alarm " << code);
+    const std::string text = gs360::GrblAlarmText(code);
+    CHECK_FALSE(text.empty());
+    CHECK_FALSE(IsUnknownText(text));
+  }
+}
+
+TEST_CASE("error and alarm texts are the sources' wording", "[gcode][messages]") {
+  using gs360::GrblAlarmText;
+  using gs360::GrblErrorText;
+  // gnea/grbl doc/csv/error_codes_en_US.csv
+  CHECK(GrblErrorText(1) == "G-code words consist of a letter and a value. Letter was not found.");
+  CHECK(GrblErrorText(20) == "Unsupported or invalid g-code command found in block.");
+  CHECK(GrblErrorText(38) == "Tool number greater than max supported value.");
+  // grblHAL/core errors.c
+  CHECK(GrblErrorText(46) == "Home machine to continue.");
+  CHECK(GrblErrorText(45) == "Only homing is allowed when a limit switch is engaged.");
+  CHECK(GrblErrorText(50) == "Emergency stop active.");
+  CHECK(GrblErrorText(253) == "User defined error occured.");  // sic
+  // gnea/grbl doc/csv/alarm_codes_en_US.csv
+  CHECK(GrblAlarmText(1) ==
+        "Hard limit has been triggered. Machine position is likely lost due to sudden halt. "
+        "Re-homing is highly recommended.");
+  // grblHAL/core alarms.c
+  CHECK(GrblAlarmText(11) == "Homing required. Execute homing command ($H) to continue.");
+  CHECK(GrblAlarmText(18) == "Homing fail. Bad configuration.");
+  // Alarm 10 conflicts (grblHAL: "EStop asserted. Clear and reset"): GRBL 1.1's text is kept.
+  CHECK(GrblAlarmText(10).rfind("Homing fail. Second dual axis limit switch", 0) == 0);
+}
+
+TEST_CASE("unknown error and alarm codes name the number", "[gcode][messages]") {
+  for (int code : {0, 200, -1, 59, 85, 254}) {
+    INFO("code " << code);
+    const std::string n = std::to_string(code);
+    CHECK(gs360::GrblErrorText(code) ==
+          "unknown error " + n + " (not in the GRBL 1.1 or grblHAL tables)");
+  }
+  for (int code : {0, 200, -1, 19}) {
+    INFO("code " << code);
+    const std::string n = std::to_string(code);
+    CHECK(gs360::GrblAlarmText(code) ==
+          "unknown alarm " + n + " (not in the GRBL 1.1 or grblHAL tables)");
+  }
+}
+
+TEST_CASE("grblHAL error 46 and alarm 11 lines parse to their real text", "[gcode][messages]") {
+  const GrblMessage e = ParseGrblLine("error:46");
+  CHECK(e.kind == GrblMessageKind::kError);
+  CHECK(e.code == 46);
+  CHECK(e.text == "Home machine to continue.");
+
+  const GrblMessage a = ParseGrblLine("ALARM:11\r");
+  CHECK(a.kind == GrblMessageKind::kAlarm);
+  CHECK(a.code == 11);
+  CHECK(a.text == "Homing required. Execute homing command ($H) to continue.");
+
+  const GrblMessage unknown = ParseGrblLine("error:200");
+  CHECK(unknown.kind == GrblMessageKind::kError);
+  CHECK(unknown.text == "unknown error 200 (not in the GRBL 1.1 or grblHAL tables)");
+}
+
+TEST_CASE("alarms that lose the machine position", "[gcode][messages]") {
+  // GRBL 1.1's texts: 1 and 3 say "Machine position is likely lost"; 2 says "retained".
+  CHECK(gs360::GrblAlarmLosesPosition(1));
+  CHECK(gs360::GrblAlarmLosesPosition(3));
+  CHECK_FALSE(gs360::GrblAlarmLosesPosition(2));
+  // Probe fails stop without a sudden halt.
+  CHECK_FALSE(gs360::GrblAlarmLosesPosition(4));
+  CHECK_FALSE(gs360::GrblAlarmLosesPosition(5));
+  // Homing failures (GRBL 6-10, grblHAL 15 and 18), grblHAL E-stop (10), homing required (11),
+  // limit engaged, probe protection, spindle, self test, motor fault: re-home.
+  for (int code : {6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18}) {
+    INFO("alarm " << code);
+    CHECK(gs360::GrblAlarmLosesPosition(code));
+  }
+  // An alarm we do not know: assume the worst.
+  CHECK(gs360::GrblAlarmLosesPosition(200));
 }
