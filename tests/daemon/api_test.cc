@@ -402,11 +402,12 @@ TEST_CASE("api: with a token every request needs it, and a wrong one gets 401",
   // Without a declared length (chunked), the body is cut off at the server's limit: the
   // connection is closed (cpp-httplib sends no status then), nothing is stored.
   CHECK_THAT(RawStatus(d.url,
-                  "POST /api/v1/meshes?format=stl HTTP/1.1\r\nHost: 127.0.0.1\r\n"
-                  "Authorization: Bearer " + token +
-                      "\r\nContent-Type: application/octet-stream\r\nTransfer-Encoding: "
-                      "chunked\r\n\r\n300000\r\n",
-                  3 << 20),
+                       "POST /api/v1/meshes?format=stl HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                       "Authorization: Bearer " +
+                           token +
+                           "\r\nContent-Type: application/octet-stream\r\nTransfer-Encoding: "
+                           "chunked\r\n\r\n300000\r\n",
+                       3 << 20),
              !Catch::StartsWith("HTTP/1.1 2"));
   CHECK(Body(c.Get("/api/v1/meshes", auth))["meshes"].empty());
   CHECK(c.Get("/api/v1/info", auth)->status == 200);
