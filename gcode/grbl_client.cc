@@ -377,6 +377,45 @@ bool GrblClient::Reconnect(std::chrono::milliseconds timeout) {
   return false;
 }
 
+namespace {
+
+// Input left in the port by an earlier session (replies, status reports) would be taken for
+// answers to this one: read what is waiting, until 100 ms of silence (1 s and 64 KiB at most),
+// before talking. Returns the number of bytes read into `out`.
+std::size_t ReadPendingInput(Transport& transport, std::string* out) {
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(1);
+  char buf[256];
+  while (std::chrono::steady_clock::now() < deadline && out->size() < (64u << 10)) {
+    const std::size_t n = transport.Read(buf, sizeof buf, std::chrono::milliseconds(100));
+    if (n == 0) break;
+    out->append(buf, n);
+  }
+  return out->size();
+}
+
+}  // namespace
+
+bool GrblClient::Running(const std::string& what) {
+  {
+    std::lock_guard lock(mu_);
+    if (!connected_) throw TransportClosed(what + " closed during the handshake");
+  }
+  // A controller that did not reset when the port opened is still running, perhaps still moving
+  // (its last host died mid-run): a reset now would stop it dead and lose its position. Ask for
+  // its status instead; a report means it is alive and its position is what it was.
+  WriteRealtime('?');
+  std::unique_lock lock(mu_);
+  if (!cv_.wait_for(lock, options_.query_timeout,
+                    [&] { return latest_status_.has_value() || !connected_; }) ||
+      !connected_) {
+    return false;
+  }
+  awaiting_welcome_ = false;
+  spdlog::info("grbl: {} answers without a reset ({}): talking to it as it is", what,
+               latest_status_->status.state_text);
+  return true;
+}
+
 GrblMachineInfo GrblClient::Handshake() {
   std::string what;
   std::uint64_t resets_before = 0;
@@ -397,6 +436,21 @@ GrblMachineInfo GrblClient::Handshake() {
     resets_before = stats_.resets;
   }
   splitter_.Clear();
+  std::string pending;
+  const std::size_t read = ReadPendingInput(*transport_, &pending);
+  // Everything before the controller's last welcome is an earlier session's; the welcome and
+  // what follows it (a board that resets when the port opens) is this one's.
+  const std::size_t welcome = pending.rfind("Grbl");
+  const std::size_t keep_from = welcome == std::string::npos ? pending.size() : welcome;
+  if (keep_from > 0) {
+    spdlog::info("grbl: discarded {} stale byte(s) from {} before the handshake: '{}'", keep_from,
+                 what, Printable(pending.substr(0, std::min<std::size_t>(keep_from, 120))));
+  }
+  if (keep_from < read) {
+    std::vector<std::string> lines;
+    splitter_.Feed(pending.data() + keep_from, read - keep_from, &lines);
+    for (const std::string& line : lines) HandleLine(line, Clock::now());
+  }
   StartThreads();
 
   auto wait_welcome = [&](milliseconds t) {
@@ -404,11 +458,7 @@ GrblMachineInfo GrblClient::Handshake() {
     return cv_.wait_for(lock, t, [&] { return stats_.resets > resets_before || !connected_; }) &&
            connected_;
   };
-  if (!wait_welcome(options_.welcome_timeout)) {
-    {
-      std::lock_guard lock(mu_);
-      if (!connected_) throw TransportClosed(what + " closed during the handshake");
-    }
+  if (!wait_welcome(options_.welcome_timeout) && !Running(what)) {
     spdlog::info("grbl: no welcome from {} within {} ms, sending a soft reset", what,
                  options_.welcome_timeout.count());
     WriteRealtime('\x18');
@@ -437,6 +487,12 @@ GrblMachineInfo GrblClient::Handshake() {
   std::lock_guard lock(mu_);
   if (!connected_) throw TransportClosed(what + " closed during the handshake");
   info_.rx_buffer_bytes = rx_buffer_bytes_;
+  if (info_.version.empty()) {
+    // No welcome (taken as it was): the version from $I's [VER:1.1h.20190825:].
+    const std::size_t second_dot = info_.build.find('.', info_.build.find('.') + 1);
+    info_.version = info_.build.substr(0, second_dot);
+    if (info_.firmware.empty()) info_.firmware = "GRBL-family controller";
+  }
   spdlog::info(
       "grbl: connected to {} {} on {}: RX buffer {} bytes{}, {} planner blocks, {} "
       "settings{}",
@@ -536,6 +592,9 @@ void GrblClient::HandleLine(const std::string& text, Clock::time_point t) {
         VoidAllLocked(GrblReplyKind::kReset, "controller reset (welcome line) before the reply");
         in_flight_bytes_ = 0;
         trusted_ = false;
+        // Reports from before the reset say nothing about the position now.
+        latest_status_.reset();
+        last_wco_.reset();
         alarmed_ = false;  // an alarm at start-up is announced by [MSG:'$H'|'$X' to unlock]
         reset_required_ = false;
         if (!was_awaiting) {

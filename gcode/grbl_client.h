@@ -188,7 +188,9 @@ class GrblClient {
   GrblClient(const GrblClient&) = delete;
   GrblClient& operator=(const GrblClient&) = delete;
 
-  // Opens the transport, waits for the welcome (soft reset if none), reads `$I` (RX buffer size,
+  // Opens the transport, discards what an earlier session left in it, waits for the welcome
+  // (without one: a controller that answers a status query is taken as it is, still running and
+  // perhaps moving; only one that does not gets a soft reset), reads `$I` (RX buffer size,
   // default 128 when absent) and `$$` (settings). The position is not trusted afterwards: Home()
   // or VerifyPosition(). Throws TransportError (cannot open) or GrblError (no welcome, no reply).
   GrblMachineInfo Connect();
@@ -272,6 +274,8 @@ class GrblClient {
   struct LineState;
 
   GrblMachineInfo Handshake();
+  // During the handshake, without a welcome: true when the controller answers a status query.
+  bool Running(const std::string& what);
   void StartThreads();
   void StopThreads();
   void ReaderLoop(Transport* transport);

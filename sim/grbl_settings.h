@@ -49,6 +49,9 @@ enum GrblStatus : int {
   kGrblGcodeUnusedWords = 36,
   kGrblGcodeG43DynamicAxisError = 37,
   kGrblGcodeMaxValueExceeded = 38,
+  // grblHAL only (grblHAL/core errors.h Status_HomingRequired): `$X` refused while the homing
+  // lock is on and the machine is not homed.
+  kGrblHalHomingRequired = 46,
 };
 
 // `ALARM:N` codes.
@@ -62,6 +65,9 @@ enum GrblAlarm : int {
   kGrblAlarmHomingFailDoor = 7,
   kGrblAlarmHomingFailPulloff = 8,
   kGrblAlarmHomingFailApproach = 9,
+  // grblHAL only (grblHAL/core alarms.h Alarm_HomingRequried): raised at boot and reset while
+  // the homing lock is on and the machine is not homed.
+  kGrblHalAlarmHomingRequired = 11,
 };
 
 // GRBL's printFloat(): a '-' for any negative value (so a tiny negative prints "-0.000", as on

@@ -22,82 +22,19 @@
 
 #include "sim/grbl_gcode.h"
 #include "sim/pty.h"
+#include "sim/virtual_cnc_impl.h"
 
 namespace gs360 {
 namespace {
 
 using Clock = std::chrono::steady_clock;
 
-constexpr char kWelcome[] = "\r\nGrbl 1.1h ['$' for help]\r\n";
-constexpr char kVersionBuild[] = "1.1h.20190825";
-constexpr std::size_t kLineBufferSize = 80;  // LINE_BUFFER_SIZE: 79 characters per line
-constexpr double kDwellTimeStep = 0.050;     // DWELL_TIME_STEP (s)
-constexpr double kHomingSearchScalar = 1.5;  // HOMING_AXIS_SEARCH_SCALAR
+constexpr double kDwellTimeStep = 0.050;                   // DWELL_TIME_STEP (s)
+constexpr double kHomingSearchScalar = 1.5;                // HOMING_AXIS_SEARCH_SCALAR
 constexpr int kWcoRefreshBusy = 30, kWcoRefreshIdle = 10;  // REPORT_WCO_REFRESH_*_COUNT
 constexpr int kOvrRefreshBusy = 20, kOvrRefreshIdle = 10;  // REPORT_OVR_REFRESH_*_COUNT
 constexpr double kMmPerInch = 25.4;
 constexpr auto kHupPollInterval = std::chrono::milliseconds(20);
-
-// Wall time -> machine time. A constant scale, or (instant mode, scale 0) a staircase that
-// jumps whenever the controller completes motion or a dwell.
-class MachineClock {
- public:
-  // `history`: jumps kept (instant mode); older wall instants cannot be mapped any more.
-  MachineClock(double scale, Clock::time_point start, std::size_t history)
-      : scale_(scale), history_(history) {
-    segments_.push_back({start, 0.0});
-  }
-
-  bool instant() const { return scale_ <= 0.0; }
-  std::uint64_t jumps() const { return jumps_; }
-
-  // Throws std::out_of_range for a wall instant before the oldest kept jump (instant mode, once
-  // jumps were evicted): the machine time there is no longer known.
-  double At(Clock::time_point w) const {
-    auto it =
-        std::upper_bound(segments_.begin(), segments_.end(), w,
-                         [](Clock::time_point value, const Segment& s) { return value < s.wall; });
-    if (it == segments_.begin() && truncated_) {
-      throw std::out_of_range(
-          "VirtualCnc: wall instant " +
-          std::to_string(std::chrono::duration<double>(segments_.front().wall - w).count()) +
-          " s before the oldest of the " + std::to_string(segments_.size()) +
-          " instant-mode clock jumps kept; raise history_pieces");
-    }
-    if (it != segments_.begin()) --it;
-    if (instant()) return it->machine;
-    return it->machine + std::chrono::duration<double>(w - it->wall).count() * scale_;
-  }
-
-  // The wall instant at which machine time m is reached (now-ish in instant mode).
-  Clock::time_point WallAt(double m) const {
-    const Segment& s = segments_.back();
-    if (instant()) return s.wall;
-    return s.wall + std::chrono::duration_cast<Clock::duration>(
-                        std::chrono::duration<double>((m - s.machine) / scale_));
-  }
-
-  void JumpTo(Clock::time_point w, double m) {
-    if (!instant() || m <= At(w)) return;
-    segments_.push_back({w, m});
-    ++jumps_;
-    while (segments_.size() > history_) {
-      segments_.pop_front();
-      truncated_ = true;
-    }
-  }
-
- private:
-  struct Segment {
-    Clock::time_point wall;
-    double machine;
-  };
-  double scale_;
-  std::size_t history_;
-  std::deque<Segment> segments_;
-  bool truncated_ = false;  // segments were evicted: instants before front() are unknown
-  std::uint64_t jumps_ = 0;
-};
 
 std::string StatusLine(int code) {
   return code == kGrblOk ? std::string("ok\r\n") : "error:" + std::to_string(code) + "\r\n";
@@ -153,251 +90,6 @@ void VirtualCncOptions::Check() const {
   if (history_pieces < 16) fail("history_pieces", std::to_string(history_pieces), "must be >= 16");
   settings.Check();
 }
-
-class VirtualCnc::Impl {
- public:
-  explicit Impl(const VirtualCncOptions& options);
-  ~Impl() { Stop(); }
-
-  void Stop();
-  std::string PtyPath() const {
-    std::lock_guard<std::mutex> lk(mu_);
-    return plugged_ ? pty_.slave_path() : std::string();
-  }
-  const VirtualCncOptions& options() const { return options_; }
-
-  Eigen::Vector3d TruePosition(Clock::time_point t) const {
-    std::lock_guard<std::mutex> lk(mu_);
-    return exec_.PositionAt(clock_.At(t));
-  }
-  double TrueSpeed(Clock::time_point t) const {
-    std::lock_guard<std::mutex> lk(mu_);
-    return exec_.SpeedAt(clock_.At(t));
-  }
-  std::vector<MotionPiece> TrueTrajectory(Clock::time_point from, Clock::time_point to) const {
-    std::lock_guard<std::mutex> lk(mu_);
-    return exec_.History(clock_.At(from), clock_.At(to));
-  }
-  double MachineTime(Clock::time_point t) const {
-    std::lock_guard<std::mutex> lk(mu_);
-    return clock_.At(t);
-  }
-  Eigen::Vector3d ReportedPosition() const {
-    std::lock_guard<std::mutex> lk(mu_);
-    return Belief();
-  }
-  GrblState State() const {
-    std::lock_guard<std::mutex> lk(mu_);
-    return state_;
-  }
-  GrblSettings Settings() const {
-    std::lock_guard<std::mutex> lk(mu_);
-    return settings_;
-  }
-  int PlannerBlocksQueued() const {
-    std::lock_guard<std::mutex> lk(mu_);
-    return exec_.BlockCount();
-  }
-  int RxBufferUsed() const {
-    std::lock_guard<std::mutex> lk(mu_);
-    return static_cast<int>(rx_.size());
-  }
-  VirtualCncStats Stats() const {
-    std::lock_guard<std::mutex> lk(mu_);
-    VirtualCncStats stats = stats_;
-    stats.clock_jumps = clock_.jumps();
-    return stats;
-  }
-
-  void DropNextBytes(std::size_t n, FaultDirection d) {
-    std::lock_guard<std::mutex> lk(mu_);
-    if (d != FaultDirection::kCncToHost) to_cnc_.drop_next += n;
-    if (d != FaultDirection::kHostToCnc) to_host_.drop_next += n;
-  }
-  void SetDropProbability(double p, FaultDirection d) {
-    if (!(p >= 0.0 && p <= 1.0)) {
-      throw std::invalid_argument("SetDropProbability: p must be in [0, 1], got " +
-                                  std::to_string(p));
-    }
-    std::lock_guard<std::mutex> lk(mu_);
-    if (d != FaultDirection::kCncToHost) to_cnc_.drop_probability = p;
-    if (d != FaultDirection::kHostToCnc) to_host_.drop_probability = p;
-  }
-  void GarbleNextBytes(std::size_t n, FaultDirection d) {
-    std::lock_guard<std::mutex> lk(mu_);
-    if (d != FaultDirection::kCncToHost) to_cnc_.garble_next += n;
-    if (d != FaultDirection::kHostToCnc) to_host_.garble_next += n;
-  }
-  void StallReplies(std::chrono::milliseconds duration) {
-    std::lock_guard<std::mutex> lk(mu_);
-    stall_until_ = std::max(stall_until_, Clock::now() + duration);
-    WakeIo();
-  }
-  void Unplug(const UnplugOptions& unplug);
-  void Replug() {
-    std::lock_guard<std::mutex> lk(mu_);
-    ReplugLocked();
-  }
-  bool Plugged() const {
-    std::lock_guard<std::mutex> lk(mu_);
-    return plugged_;
-  }
-  void RaiseAlarmDuringNextMove(int code, double fraction) {
-    if (code < 1 || code > 255 || !(fraction >= 0.0 && fraction <= 1.0)) {
-      throw std::invalid_argument(
-          "RaiseAlarmDuringNextMove: code must be 1..255 and fraction in [0, 1], got " +
-          std::to_string(code) + ", " + std::to_string(fraction));
-    }
-    std::lock_guard<std::mutex> lk(mu_);
-    armed_alarm_ = ArmedAlarm{code, fraction};
-  }
-  void LosePositionOnReset(bool lose) {
-    std::lock_guard<std::mutex> lk(mu_);
-    lose_position_ = lose;
-  }
-
- private:
-  using Lock = std::unique_lock<std::mutex>;
-  struct LinkFaults {
-    std::size_t drop_next = 0;
-    std::size_t garble_next = 0;
-    double drop_probability = 0.0;
-  };
-
-  // ----- clock, motion, positions (mu_ held) -----
-  double MachineNow() const { return clock_.At(Clock::now()); }
-  Eigen::Vector3d Quantize(const Eigen::Vector3d& p) const {
-    Eigen::Vector3d q;
-    for (int i = 0; i < 3; ++i) {
-      q[i] = static_cast<double>(std::lround(p[i] * settings_.steps_per_mm[i])) /
-             settings_.steps_per_mm[i];
-    }
-    return q;
-  }
-  Eigen::Vector3d Belief() const { return Quantize(exec_.PositionAt(MachineNow()) - offset_); }
-  void UpdateMotion();
-  void LosePosition();
-
-  // ----- "ISR" side (mu_ held) -----
-  void OnHostByte(unsigned char c);
-  void McReset();
-  void WakeIo() {
-    const char b = 1;
-    [[maybe_unused]] ssize_t n = ::write(wake_[1], &b, 1);
-  }
-  void Emit(const std::string& s);
-
-  // ----- power (mu_ held) -----
-  void PowerOn();
-  void PowerOff();
-  void ReplugLocked();
-
-  // ----- firmware thread -----
-  void FirmwareMain();
-  void InitAfterReset();
-  void ProtocolMainLoop(Lock& lk);
-  bool Aborting() const { return rt_reset_ || stop_ || !powered_ || boot_id_ != running_boot_; }
-  void Wait(Lock& lk, double deadline = std::numeric_limits<double>::infinity());
-  void ExecuteRealtime(Lock& lk);
-  void RtSystem(Lock& lk);
-  bool Suspended() const { return hold_complete_ || state_ == GrblState::kSleep; }
-  void AutoCycleStart();
-  void Synchronize(Lock& lk);
-  void ReportStatus();
-  std::string AxisValues(const Eigen::Vector3d& v) const;
-  int SystemExecuteLine(Lock& lk, const std::string& line);
-  int GcExecuteLine(Lock& lk, const std::string& line);
-  void ExecuteStartupLines(Lock& lk);
-  void McLine(Lock& lk, const Eigen::Vector3d& target, const MoveRate& rate);
-  void McArc(Lock& lk, const GcodeBlock& blk, const MoveRate& rate);
-  void McDwell(Lock& lk, double seconds);
-  void MachineDelay(Lock& lk, double seconds);  // uninterruptible except by abort (homing)
-  int McProbeCycle(Lock& lk, const GcodeBlock& blk, const MoveRate& rate);
-  bool TravelOk(const Eigen::Vector3d& target) const;
-  // MPos of `axis` after homing: -$27 toward + ($23 bit clear), -$13x + $27 toward -; 0 with
-  // HOMING_FORCE_SET_ORIGIN.
-  double HomedPosition(int axis) const;
-  void LimitsSoftCheck(Lock& lk, const Eigen::Vector3d& target);
-  void FlagWcoChange(Lock& lk) {
-    Synchronize(lk);
-    wco_counter_ = 0;
-  }
-  void HomingCycle(Lock& lk);
-  bool HomeAxes(Lock& lk, const std::vector<int>& axes);
-  bool HomingMove(Lock& lk, const Eigen::Vector3d& target, double rate, bool abrupt);
-  double SpindleRpm() const;
-
-  // ----- I/O thread -----
-  void IoMain();
-  void ReadFromHost(int fd);
-  void PaceRx(Clock::time_point now);  // bytes from the host reach the UART at the baud rate
-  void PaceTx(Clock::time_point now);  // and leave it at the baud rate
-
-  const VirtualCncOptions options_;
-  mutable std::mutex mu_;
-  std::condition_variable cv_;     // firmware wake-ups
-  std::condition_variable io_cv_;  // I/O thread acknowledgements
-  MachineClock clock_;
-  MotionExecutor exec_;
-
-  // EEPROM.
-  GrblSettings settings_;
-  CoordinateData coords_;
-  std::array<std::string, 2> startup_lines_;
-  std::string build_info_;
-
-  // System state.
-  GrblState state_ = GrblState::kIdle;
-  GcodeState gc_;
-  Eigen::Vector3d offset_ = Eigen::Vector3d::Zero();  // true - belief
-  Eigen::Vector3d probe_position_ = Eigen::Vector3d::Zero();
-  bool probe_succeeded_ = false;
-  bool abort_ = false;
-  bool hold_complete_ = false;  // SUSPEND_HOLD_COMPLETE
-  bool jog_cancel_ = false;     // SUSPEND_JOG_CANCEL
-  bool soft_limit_ = false;
-  bool cycle_stop_ = false;
-  int wco_counter_ = 0;
-  int ovr_counter_ = 0;
-  // Real-time flags set by the ISR side.
-  bool rt_reset_ = false;
-  bool rt_status_ = false;
-  bool rt_cycle_start_ = false;
-  bool rt_feed_hold_ = false;
-  bool rt_motion_cancel_ = false;
-  bool rt_sleep_ = false;
-  int rt_alarm_ = 0;
-  std::deque<char> rx_;
-
-  // Power and link.
-  bool powered_ = false;
-  std::uint64_t boot_id_ = 0;       // incremented at every power-up
-  std::uint64_t running_boot_ = 0;  // the power-up the firmware loop is running for
-  std::optional<Clock::time_point> boot_at_;
-  bool stop_ = false;
-  Pty pty_;
-  bool plugged_ = false;
-  bool close_request_ = false;
-  bool host_open_ = false;
-  std::optional<Clock::time_point> replug_at_;
-  int wake_[2] = {-1, -1};
-  std::string rx_line_;  // bytes read from the pty, not yet through the UART
-  Clock::time_point rx_clock_{};
-  std::string tx_;  // replies not yet through the UART
-  Clock::time_point tx_clock_{};
-  std::string wire_;             // bytes past the UART and the fault filter, being written
-  Clock::duration byte_time_{};  // 10 bits per byte at the baud rate (0: no pacing)
-
-  // Faults.
-  std::mt19937_64 rng_;
-  LinkFaults to_cnc_, to_host_;
-  Clock::time_point stall_until_{};
-  std::optional<ArmedAlarm> armed_alarm_;
-  bool lose_position_ = false;
-
-  VirtualCncStats stats_;
-  std::thread firmware_, io_;
-};
 
 VirtualCnc::Impl::Impl(const VirtualCncOptions& options)
     : options_(options),
@@ -458,7 +150,12 @@ void VirtualCnc::Impl::PowerOn() {
   const double m = MachineNow();
   exec_.Stop(m);
   offset_ = exec_.PositionAt(m);  // the controller wakes up believing it is at 0,0,0
-  state_ = settings_.homing_enable ? GrblState::kAlarm : GrblState::kIdle;  // HOMING_INIT_LOCK
+  // HOMING_INIT_LOCK: Alarm at power-up with homing enabled.
+  state_ =
+      settings_.homing_enable && options_.homing_init_lock ? GrblState::kAlarm : GrblState::kIdle;
+  homed_ = false;
+  alarm_code_ = 0;
+  rt_alarm_ = 0;  // RAM: anything pending from before the power loss is gone
   boot_at_ = Clock::now() + options_.boot_delay;
   cv_.notify_all();
 }
@@ -560,6 +257,7 @@ void VirtualCnc::Impl::McReset() {
       rt_alarm_ = kGrblAlarmAbortCycle;
     }
     exec_.Stop(MachineNow());  // steppers killed: position likely lost
+    homed_ = false;            // grblHAL: sys.position_lost clears the homed axes
     if (lose_position_) LosePosition();
   }
   cv_.notify_all();
@@ -572,6 +270,13 @@ void VirtualCnc::Impl::LosePosition() {
 }
 
 void VirtualCnc::Impl::Emit(const std::string& s) {
+  // The firmware thread may still be unwinding the run of a previous power-up (e.g. a dwell
+  // cut short by PowerCycle()): that code no longer exists on the board, its output is not sent.
+  if (boot_id_ != running_boot_) return;
+  Transmit(s);
+}
+
+void VirtualCnc::Impl::Transmit(const std::string& s) {
   if (!plugged_ || !powered_) return;
   if (options_.reset_on_open && !host_open_) return;  // nobody listening: lost
   if (tx_.empty()) tx_clock_ = std::max(tx_clock_, Clock::now());
@@ -649,10 +354,7 @@ void VirtualCnc::Impl::IoMain() {
     if (now_hup && host_open_) host_open_ = false;
     if (!now_hup && !host_open_) {
       host_open_ = true;
-      if (options_.reset_on_open) {  // DTR pulse resets the board
-        PowerOff();
-        PowerOn();
-      }
+      if (options_.reset_on_open) Reboot();  // the DTR pulse resets the board
     }
     hup = now_hup;
     if (probe.revents & POLLIN) ReadFromHost(fd);
@@ -743,64 +445,32 @@ void VirtualCnc::Impl::InitAfterReset() {
   gc_.coord_system = coords_.wcs[0];
   gc_.position = Belief();  // gc_sync_position()
   wco_counter_ = ovr_counter_ = 0;
-  Emit(kWelcome);
+  last_error_ = kGrblOk;
+  Emit(Welcome());
 }
 
 void VirtualCnc::Impl::ProtocolMainLoop(Lock& lk) {
-  if (state_ == GrblState::kAlarm || state_ == GrblState::kSleep) {
-    Emit("[MSG:'$H'|'$X' to unlock]\r\n");
-    state_ = GrblState::kAlarm;
-  } else {
-    state_ = GrblState::kIdle;
-    ExecuteStartupLines(lk);
-    if (abort_ || Aborting()) return;
-  }
-  std::string line;
-  bool overflow = false, paren = false, semicolon = false;
+  if (!EnterMainLoop(lk)) return;
+  LineBuffer in;
   while (true) {
     while (!rx_.empty()) {
       const char c = rx_.front();
       rx_.pop_front();
-      if (c == '\n' || c == '\r') {
+      if (c != '\n' && c != '\r') {
+        in.Add(c);
+        continue;
+      }
+      if (GrblHal() && in.PairedTerminator(c)) continue;
+      ExecuteRealtime(lk);
+      if (abort_) return;
+      const int status = ExecuteLine(lk, in);
+      ++stats_.lines;
+      if (status != kGrblOk) ++stats_.errors;
+      Emit(StatusLine(status));
+      in.Clear();
+      if (abort_ || Aborting()) {
         ExecuteRealtime(lk);
         if (abort_) return;
-        int status = kGrblOk;
-        if (overflow) {
-          status = kGrblOverflow;
-        } else if (line.empty()) {
-          status = kGrblOk;  // empty or comment line
-        } else if (line[0] == '$') {
-          status = SystemExecuteLine(lk, line);
-        } else if (state_ == GrblState::kAlarm || state_ == GrblState::kJog) {
-          status = kGrblSystemGcLock;
-        } else {
-          status = GcExecuteLine(lk, line);
-        }
-        ++stats_.lines;
-        if (status != kGrblOk) ++stats_.errors;
-        Emit(StatusLine(status));
-        line.clear();
-        overflow = paren = semicolon = false;
-        if (abort_ || Aborting()) {
-          ExecuteRealtime(lk);
-          if (abort_) return;
-        }
-      } else if (overflow || paren || semicolon) {
-        if (c == ')' && paren) paren = false;
-      } else if (static_cast<unsigned char>(c) <= ' ') {
-        // whitespace and control characters
-      } else if (c == '/') {
-        // block delete: not supported, ignored
-      } else if (c == '(') {
-        paren = true;
-      } else if (c == ';') {
-        semicolon = true;
-      } else if (line.size() >= kLineBufferSize - 1) {
-        overflow = true;
-      } else if (c >= 'a' && c <= 'z') {
-        line.push_back(static_cast<char>(c - 'a' + 'A'));
-      } else {
-        line.push_back(c);
       }
     }
     AutoCycleStart();
@@ -837,6 +507,7 @@ void VirtualCnc::Impl::UpdateMotion() {
     rt_alarm_ = fired->code;
     if (!rt_reset_) ++stats_.resets;
     rt_reset_ = true;
+    homed_ = false;
     if (lose_position_) LosePosition();
   }
   if ((state_ == GrblState::kRun || state_ == GrblState::kJog ||
@@ -855,20 +526,27 @@ void VirtualCnc::Impl::ExecuteRealtime(Lock& lk) {
   }
 }
 
-void VirtualCnc::Impl::RtSystem(Lock& lk) {
-  UpdateMotion();
-  if (rt_alarm_) {
-    state_ = GrblState::kAlarm;
-    ++stats_.alarms;
-    Emit("ALARM:" + std::to_string(rt_alarm_) + "\r\n");
-    if (rt_alarm_ == kGrblAlarmHardLimit || rt_alarm_ == kGrblAlarmSoftLimit) {
-      Emit("[MSG:Reset to continue]\r\n");
-      rt_reset_ = false;
-      // Block everything (status reports included, as GRBL 1.1 does) until a reset.
-      cv_.wait(lk, [&] { return Aborting(); });
-    }
-    rt_alarm_ = 0;
+void VirtualCnc::Impl::RtAlarm(Lock& lk) {
+  state_ = GrblState::kAlarm;
+  ++stats_.alarms;
+  Emit("ALARM:" + std::to_string(rt_alarm_) + "\r\n");
+  alarm_code_ = rt_alarm_;
+  if (rt_alarm_ == kGrblAlarmHardLimit || rt_alarm_ == kGrblAlarmSoftLimit) {
+    Emit("[MSG:Reset to continue]\r\n");
+    rt_reset_ = false;
+    // Block everything (status reports included, as GRBL 1.1 does) until a reset.
+    cv_.wait(lk, [&] { return Aborting(); });
   }
+  rt_alarm_ = 0;
+}
+
+void VirtualCnc::Impl::RtSystem(Lock& lk) {
+  if (Rebooted()) {  // power lost or restarted: unwind without running the old boot's events
+    abort_ = true;
+    return;
+  }
+  UpdateMotion();
+  if (rt_alarm_) RtAlarm(lk);
   if (Aborting()) {
     abort_ = true;
     return;
@@ -1066,8 +744,12 @@ int VirtualCnc::Impl::SystemExecuteLine(Lock& lk, const std::string& line) {
           break;
         default:  // 'X'
           if (state_ == GrblState::kAlarm) {
+            // grblHAL system.c disable_lock(): `else if(limits_homing_required()) retval =
+            // Status_HomingRequired;` and the Alarm stays.
+            if (HomingRequired()) return kGrblHalHomingRequired;
             Emit("[MSG:Caution: Unlocked]\r\n");
             state_ = GrblState::kIdle;
+            alarm_code_ = 0;
           }
           break;
       }
@@ -1102,6 +784,7 @@ int VirtualCnc::Impl::SystemExecuteLine(Lock& lk, const std::string& line) {
       HomingCycle(lk);
       if (!abort_ && !Aborting()) {
         state_ = GrblState::kIdle;
+        alarm_code_ = 0;
         ExecuteStartupLines(lk);
       }
       return kGrblOk;
@@ -1111,10 +794,7 @@ int VirtualCnc::Impl::SystemExecuteLine(Lock& lk, const std::string& line) {
       return kGrblOk;
     case 'I':
       if (line.size() == 2) {
-        Emit("[VER:" + std::string(kVersionBuild) + ":" + build_info_ + "]\r\n");
-        Emit(std::string("[OPT:V") + (options_.homing_force_set_origin ? "Z" : "") + "," +
-             std::to_string(options_.planner_blocks) + "," +
-             std::to_string(options_.rx_buffer_bytes) + "]\r\n");
+        ReportBuildInfo();
         return kGrblOk;
       }
       if (line[2] != '=') return kGrblInvalidStatement;
@@ -1511,6 +1191,7 @@ bool VirtualCnc::Impl::HomeAxes(Lock& lk, const std::vector<int>& axes) {
     sw[i] = HomedPosition(i) + dir[i] * pulloff;
   }
   auto fail = [&](int alarm) {
+    if (Rebooted()) return false;  // the board restarted: no alarm from the old run
     rt_alarm_ = alarm;
     McReset();
     ExecuteRealtime(lk);
@@ -1557,6 +1238,7 @@ void VirtualCnc::Impl::HomingCycle(Lock& lk) {
   if (!HomeAxes(lk, {0, 1})) return;  // HOMING_CYCLE_1: X and Y
   ExecuteRealtime(lk);                // answers a status request made during homing (state Home)
   if (abort_) return;
+  homed_ = true;
   gc_.position = Belief();
 }
 
@@ -1649,8 +1331,10 @@ int RunVirtualCncForeground(const VirtualCncOptions& options) {
     std::cout << cnc.PtyPath() << "\n";
     if (!options.symlink_path.empty()) std::cout << options.symlink_path << "\n";
     std::cout.flush();
-    std::cerr << "virtual GRBL 1.1h on " << cnc.PtyPath() << " (time scale " << options.time_scale
-              << ", RX " << options.rx_buffer_bytes << " bytes, " << options.planner_blocks
+    std::cerr << "virtual "
+              << (options.firmware == GrblFirmware::kGrblHal ? "grblHAL 1.1f" : "GRBL 1.1h")
+              << " on " << cnc.PtyPath() << " (time scale " << options.time_scale << ", RX "
+              << options.rx_buffer_bytes << " bytes, " << options.planner_blocks
               << " planner blocks); Ctrl-C to stop\n";
     int sig = 0;
     sigwait(&signals, &sig);

@@ -15,7 +15,8 @@
 //   when a line is parsed and queued; `error:N` with GRBL's codes; every line terminator counts,
 //   so "\r\n" yields a second `ok` (for the empty line), as on the firmware.
 // - Welcome `\r\nGrbl 1.1h ['$' for help]` after power-up and every reset, then
-//   `[MSG:'$H'|'$X' to unlock]` while in Alarm (homing enabled: Alarm at power-up).
+//   `[MSG:'$H'|'$X' to unlock]` while in Alarm (homing enabled and `homing_init_lock`: Alarm
+//   at power-up).
 // - Reset (0x18) while moving (Run, Jog, Home, Hold:1): steppers stop dead, `ALARM:3`
 //   (`ALARM:6` while homing) is reported *before* the welcome; a reset in Hold:0 keeps position.
 // - Soft limits ($20): the target is checked before queuing; a violation stops motion with a
@@ -44,11 +45,48 @@
 //
 // Ground truth vs. belief: the machine has a true position (TruePosition, machine frame, mm) and
 // the controller's belief (what MPos reports). They agree unless position is lost: a power loss
-// (Unplug with power_loss, reset_on_open) restarts the controller at MPos 0,0,0 wherever the
-// machine stands; LosePositionOnReset(true) shifts the belief by a random offset whenever the
-// steppers are stopped dead (reset in motion, hard limit, injected alarm). Homing restores
-// agreement. The true frame is the machine frame of a correct homing: the switches sit one
-// pull-off beyond the homed position (at 0 or -$13x on a stock build).
+// (Unplug with power_loss, reset_on_open, PowerCycle) restarts the controller at MPos 0,0,0
+// wherever the machine stands, and whatever the interrupted run would still have printed (the
+// `ok` of a line cut short, say) is never sent; LosePositionOnReset(true) shifts the belief by a
+// random offset whenever the steppers are stopped dead (reset in motion, hard limit, injected
+// alarm). Homing restores agreement. The true frame is the machine frame of a correct homing: the
+// switches sit one pull-off beyond the homed position (at 0 or -$13x on a stock build).
+//
+// Board-side faults (the USB link stays up; see the methods for what a host sees):
+// - PowerCycle(): the board restarts at once (brown-out, watchdog, a reset button wired to the
+//   MCU's RESET line): steppers stop dead, no ALARM is printed, pending output is lost, the
+//   controller believes MPos 0,0,0 wherever the tool is, and it boots as at power-up.
+// - ResetNow(): GRBL's own reset input (the reset/abort pin of the CNC shield), which runs
+//   mc_reset() exactly as 0x18 does: ALARM:3 in motion, nothing at rest (a G4 dwell included).
+// - SendRaw(): bytes that reach the host as they are, e.g. replies left over from an earlier
+//   session sitting in the pty when a new host opens it.
+//
+// grblHAL dialect (`firmware = GrblFirmware::kGrblHal`), as grblHAL/core (COMPATIBILITY_LEVEL
+// 0, its default) behaves in github.com/grblHAL/core: report.c, protocol.c, gcode.c, grbllib.c,
+// alarms.h at 04ce2c5c (2023), system.c at 0488a614 and machine_limits.c at 049f0f13 (2025),
+// errors.h at 02b45f86, messages.c at 28711ee5:
+// - Welcome `\r\nGrblHAL 1.1f ['$' or '$HELP' for help]` (report.c report_init_message()).
+// - `$I`: `[VER:1.1f.20240101:<info>]`, `[OPT:VN<flags>,<planner blocks>,<RX bytes>,3,0]`,
+//   `[AXS:3:XYZ]`, `[NEWOPT:ENUMS,RT+[,HOME]]`, `[FIRMWARE:grblHAL]` (report.c
+//   report_build_info(), extended at level 0). The RX-buffer field stays third.
+// - Homing lock ($22 bit 2, `homing_init_lock`): while homing is enabled and the machine has not
+//   been homed since power-up (or since position was lost), every boot and reset raises `ALARM:11`
+//   (printed once while it lasts, system_raise_alarm() prints only a change) then `[MSG:Homing
+//   cycle required]` (protocol.c protocol_main_loop(), machine_limits.c limits_homing_required());
+//   `$X` is refused with `error:46` and the Alarm stays (system.c disable_lock()); only `$H`
+//   unlocks. G-code gets `error:9` meanwhile (alarm lock), never error:46: gcode.c has no homing
+//   check for motion. Homed status survives a reset at rest and is lost when the steppers stop dead
+//   (reset in motion, hard limit, injected alarm: mc_reset() sets sys.position_lost, and grbllib.c
+//   grbl_enter() then clears sys.homed).
+// - Line endings: the second character of a "\r\n" (or "\n\r") pair is not an empty line, so
+//   "\r\n" gets one reply, not two (protocol.c: "do not process as empty line if part of crlf").
+// - Error latch: after a G-code line fails, every following G-code line is answered with the
+//   same error:N WITHOUT being executed, until an empty line, a `$` command (which sets the
+//   latch to its own status) or a reset (protocol.c: `gc_state.last_error == Status_OK`).
+// Not modelled for grblHAL: its longer lines (LINE_BUFFER_SIZE), its extra status fields
+// (|Pn:, |H:, ...), $$ (GRBL 1.1's list is printed, $22 as 0/1), $HELP and the other new `$`
+// commands, board-specific $I lines ([DRIVER:], [BOARD:], [NVS STORAGE:]), tool change, soft
+// limits on homed axes only (machine_limits.c check_travel_limits(): they apply to all here).
 //
 // Thread-safe: every public method may be called from any thread.
 
@@ -71,6 +109,12 @@ enum class GrblState { kIdle, kRun, kHold, kJog, kAlarm, kDoor, kCheck, kHome, k
 // "Idle", "Run", "Hold", ... (without sub-state).
 const char* GrblStateName(GrblState state);
 
+// Which firmware the virtual controller speaks.
+enum class GrblFirmware {
+  kGrbl11h,  // gnea/grbl 1.1h
+  kGrblHal,  // grblHAL core, COMPATIBILITY_LEVEL 0 (see the header comment)
+};
+
 struct VirtualCncOptions {
   // Machine seconds per wall second: 1 = real time, 20 = twenty times faster. 0 = instant:
   // motion and dwells complete at once, ordering and replies unchanged.
@@ -82,6 +126,11 @@ struct VirtualCncOptions {
   int baud_rate = 115200;
   int planner_blocks = 15;
   GrblSettings settings;  // the EEPROM at power-up; also what $RST=$ restores
+  GrblFirmware firmware = GrblFirmware::kGrbl11h;
+  // HOMING_INIT_LOCK (a GRBL 1.1h build option, on in the stock build; grblHAL's $22 bit 2):
+  // with homing enabled the controller boots into Alarm (grblHAL: ALARM:11 until homed).
+  // Without it, it boots Idle and `$I` shows `L` in [OPT:].
+  bool homing_init_lock = true;
   // GRBL's HOMING_FORCE_SET_ORIGIN build option (`Z` in [OPT:]): homing leaves MPos at 0 on
   // each axis instead of the pull-off position, and an axis homed toward - travels 0..+$13x.
   bool homing_force_set_origin = false;
@@ -195,6 +244,32 @@ class VirtualCnc {
   // While true, every dead stop (reset in motion, hard limit, injected alarm) also shifts the
   // controller's belief by up to `lost_position_max_mm` per axis.
   void LosePositionOnReset(bool lose);
+
+  // --- Board-side faults (the USB link stays up, PtyPath() unchanged) ---
+  // The board restarts now (brown-out, watchdog, reset button on the MCU's RESET line), as
+  // Unplug(power_loss) + Replug() and reset_on_open do, without the link going away: motion
+  // stops dead where it is (no ALARM line), output not yet sent is lost, lines in flight get no
+  // reply, and after `boot_delay` the host reads the welcome of a fresh power-up: MPos 0,0,0
+  // wherever the tool stands, Alarm with homing enabled (and homing_init_lock), settings kept.
+  // No effect while unpowered (unplugged with power loss).
+  void PowerCycle();
+  // GRBL's reset input pin (or anything acting as 0x18): mc_reset() as for a received 0x18, so
+  // a host sees what a soft reset gives: in motion (Run, Jog, Home, Hold:1) the steppers stop
+  // dead, `ALARM:3` (homing: ALARM:6) then the welcome and the Alarm unlock message; position is
+  // then lost (belief shifted with LosePositionOnReset, else MPos = where the steppers stopped).
+  // At rest (Idle, Hold:0, a G4 dwell: the planner is empty) no alarm and position kept: the
+  // line being executed completes with its `ok` (a dwell is cut short), then the welcome; lines
+  // still in the RX buffer are discarded and never answered. No effect while unpowered.
+  void ResetNow();
+  // The controller sends `bytes` to the host as they are (paced, and subject to the CncToHost
+  // faults, like any output). Without reset_on_open, bytes sent while no host has the port open
+  // wait in the pty and are the first thing the next host reads (stale "ok", "error:9" or
+  // status reports from an earlier session); with reset_on_open they are lost, like all output
+  // with nobody listening. Dropped while unplugged or unpowered.
+  void SendRaw(const std::string& bytes);
+  // Bytes the controller has produced but not yet written into the pty (0 once all output,
+  // SendRaw's included, is readable by a host or waits in the pty for one).
+  std::size_t PendingOutputBytes() const;
 
  private:
   class Impl;

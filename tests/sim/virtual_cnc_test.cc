@@ -13,6 +13,7 @@
 #include <cmath>
 #include <cstdio>
 #include <deque>
+#include <functional>
 #include <iostream>
 #include <optional>
 #include <sstream>
@@ -23,6 +24,7 @@
 #include "sim/virtual_cnc.h"
 
 using gs360::FaultDirection;
+using gs360::GrblFirmware;
 using gs360::GrblState;
 using gs360::VirtualCnc;
 using gs360::VirtualCncOptions;
@@ -193,6 +195,39 @@ std::string WaitState(Host& host, const std::string& state, double timeout_s = 5
 void Sleep(double s) {
   std::this_thread::sleep_for(std::chrono::duration<double>(s));
 }
+
+// Waits (polling '?') until a status report satisfies `done`; returns it.
+std::string WaitStatus(Host& host, const std::function<bool(const std::string&)>& done,
+                       double timeout_s = 5.0) {
+  const Clock::time_point deadline =
+      Clock::now() + std::chrono::milliseconds(static_cast<int>(timeout_s * 1000));
+  std::string s;
+  while (Clock::now() < deadline) {
+    s = host.Status();
+    if (done(s)) return s;
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  FAIL("condition never met; last status " << s);
+  return s;
+}
+
+// Waits until the machine runs and MPos X has passed `x` (moving toward -X).
+std::string WaitMovingPast(Host& host, double x) {
+  return WaitStatus(host,
+                    [x](const std::string& s) { return StateOf(s) == "Run" && MPos(s)[0] < x; });
+}
+
+// Polls `done` until it holds (fails the test after `timeout_s`).
+void WaitFor(const std::function<bool()>& done, double timeout_s = 5.0) {
+  const Clock::time_point deadline =
+      Clock::now() + std::chrono::milliseconds(static_cast<int>(timeout_s * 1000));
+  while (!done()) {
+    if (Clock::now() >= deadline) FAIL("condition never met");
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+}
+
+constexpr char kHalWelcome[] = "GrblHAL 1.1f ['$' or '$HELP' for help]";
 
 }  // namespace
 
@@ -905,4 +940,251 @@ TEST_CASE("Check mode - startup lines - restore - sleep - arcs - offsets - progr
   host.Send("\x18");
   CHECK(*host.Line() == "Grbl 1.1h ['$' for help]");
   CHECK(*host.Line() == "[MSG:'$H'|'$X' to unlock]");
+}
+
+TEST_CASE("Fault: PowerCycle restarts the board mid-move with the link up - MPos 0 wherever it is",
+          "[virtual_cnc]") {
+  VirtualCncOptions o = FastOptions(2);
+  o.settings.homing_enable = true;  // Alarm at power-up (soft limits stay off)
+  VirtualCnc cnc(o);
+  const std::string path = cnc.PtyPath();
+  Host host(path);
+  host.Until("[MSG:'$H'|'$X' to unlock]");
+  CHECK(host.Command("$X") == "ok");
+  CHECK(host.Command("G1X-30F1200") == "ok");  // 1.5 machine seconds
+  host.Send("G4P0.5\n");                       // parsed, waiting for the move: in flight
+  WaitMovingPast(host, -1.0);
+  cnc.PowerCycle();
+  const Eigen::Vector3d where = cnc.TruePositionNow();
+  // A fresh boot and nothing else: no ALARM:3 (this is no reset), no ok for the G4.
+  CHECK(*host.Line() == "Grbl 1.1h ['$' for help]");
+  CHECK(*host.Line() == "[MSG:'$H'|'$X' to unlock]");
+  CHECK_FALSE(host.Line(0.3));
+  CHECK_FALSE(host.eof);  // the link stayed up, under the same path
+  CHECK(cnc.PtyPath() == path);
+  std::string s = host.Status();
+  CHECK(StateOf(s) == "Alarm");
+  CHECK(MPos(s).isZero());  // believes 0,0,0 ...
+  CHECK(where[0] < -1.0);   // ... where the tool stopped dead mid-move
+  CHECK(where[0] > -29.0);
+  CHECK(cnc.TrueSpeed(Clock::now()) == 0.0);
+  CHECK(cnc.TruePositionNow().isApprox(where));
+  CHECK(cnc.Stats().boots == 2);
+  CHECK(cnc.Stats().alarms == 0);
+
+  // Settings are EEPROM: $22=0 survives the next restart, which then comes up Idle.
+  CHECK(host.Command("$22=0") == "ok");
+  cnc.PowerCycle();
+  CHECK(*host.Line() == "Grbl 1.1h ['$' for help]");
+  CHECK_FALSE(host.Line(0.2));
+  s = host.Status();
+  CHECK(StateOf(s) == "Idle");
+  CHECK(MPos(s).isZero());
+  CHECK(host.Command("G91G0X-1") == "ok");  // relative to a wrong belief: lands at where - 1
+  s = WaitState(host, "Idle");
+  CHECK(MPos(s)[0] == -1.0);
+  CHECK(cnc.TruePositionNow()[0] == Approx(where[0] - 1.0));
+}
+
+TEST_CASE("Fault: ResetNow acts as 0x18 - ALARM:3 in motion - at a G4 dwell no alarm",
+          "[virtual_cnc]") {
+  VirtualCnc cnc(FastOptions(2));
+  Host host(cnc.PtyPath());
+  host.Until("Grbl 1.1h ['$' for help]");
+  // In motion: steppers stop dead, ALARM:3 before the welcome; MPos is where they stopped.
+  CHECK(host.Command("G1X-50F1200") == "ok");
+  WaitMovingPast(host, -1.0);
+  cnc.ResetNow();
+  CHECK(*host.Line() == "ALARM:3");
+  CHECK(*host.Line() == "Grbl 1.1h ['$' for help]");
+  CHECK(*host.Line() == "[MSG:'$H'|'$X' to unlock]");
+  Eigen::Vector3d stopped = cnc.TruePositionNow();
+  CHECK(stopped[0] < -1.0);
+  CHECK(stopped[0] > -49.0);
+  CHECK(cnc.TrueSpeed(Clock::now()) == 0.0);
+  CHECK((MPos(host.Status()) - stopped).norm() < 2e-3);
+  CHECK(host.Command("$X") == "ok");
+  // With position loss on, the belief is shifted by the dead stop.
+  cnc.LosePositionOnReset(true);
+  CHECK(host.Command("G91G1X-40F1200") == "ok");
+  WaitMovingPast(host, stopped[0] - 1.0);
+  cnc.ResetNow();
+  CHECK(*host.Line() == "ALARM:3");
+  CHECK(*host.Line() == "Grbl 1.1h ['$' for help]");
+  CHECK(*host.Line() == "[MSG:'$H'|'$X' to unlock]");
+  stopped = cnc.TruePositionNow();
+  const Eigen::Vector3d shift = cnc.ReportedPosition() - stopped;
+  CHECK(shift.cwiseAbs().maxCoeff() > 1e-3);
+  CHECK(shift.cwiseAbs().maxCoeff() <= 0.5 + 1e-3);
+  CHECK((MPos(host.Status()) - cnc.ReportedPosition()).norm() < 2e-3);
+  CHECK(cnc.Stats().resets == 2);
+  cnc.LosePositionOnReset(false);
+  CHECK(host.Command("$X") == "ok");
+
+  // At a dwell the planner is empty and the state Idle: a reset stops nothing. The G4 ends
+  // with its ok, then the welcome; the two moves still in the RX buffer are never answered.
+  const Eigen::Vector3d before = cnc.TruePositionNow();
+  const Eigen::Vector3d belief = cnc.ReportedPosition();
+  host.Send("G4P4\nG91G0X-1\nG0X-1\n");
+  WaitFor([&] { return cnc.RxBufferUsed() == 15; });  // the G4 consumed, dwelling
+  CHECK(cnc.State() == GrblState::kIdle);
+  CHECK(cnc.PlannerBlocksQueued() == 0);
+  cnc.ResetNow();
+  CHECK(*host.Line() == "ok");
+  CHECK(*host.Line() == "Grbl 1.1h ['$' for help]");
+  CHECK_FALSE(host.Line(0.3));
+  CHECK(StateOf(host.Status()) == "Idle");
+  CHECK(cnc.RxBufferUsed() == 0);
+  CHECK(cnc.TruePositionNow().isApprox(before));
+  CHECK(cnc.ReportedPosition().isApprox(belief));
+  CHECK(cnc.Stats().alarms == 2);
+  CHECK(cnc.Stats().resets == 3);
+}
+
+TEST_CASE("Fault: stale bytes left in the pty are the first thing the next host reads",
+          "[virtual_cnc]") {
+  const std::string stale = "ok\r\nerror:9\r\n<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n";
+  VirtualCnc cnc(FastOptions(0));
+  {
+    Host earlier(cnc.PtyPath());  // an earlier session, now over
+    earlier.Until("Grbl 1.1h ['$' for help]");
+    CHECK(earlier.Command("G0X-2") == "ok");
+  }
+  cnc.SendRaw(stale);                                      // while no host has the port open
+  WaitFor([&] { return cnc.PendingOutputBytes() == 0; });  // all of it sits in the pty
+  Host host(cnc.PtyPath());
+  host.Send("G0X-1\n");
+  CHECK(*host.Line() == "ok");  // stale, not the reply to G0X-1
+  CHECK(*host.Line() == "error:9");
+  CHECK(*host.Line() == "<Idle|MPos:0.000,0.000,0.000|FS:0,0>");
+  CHECK(*host.Line() == "ok");  // the reply to G0X-1
+  CHECK_FALSE(host.Line(0.2));
+  CHECK(MPos(host.Status())[0] == -1.0);
+
+  // With reset_on_open, output with nobody listening is lost: SendRaw's included.
+  VirtualCncOptions o = FastOptions(0);
+  o.reset_on_open = true;
+  VirtualCnc lossy(o);
+  lossy.SendRaw(stale);
+  CHECK(lossy.PendingOutputBytes() == 0);
+  Host fresh(lossy.PtyPath());
+  CHECK(*fresh.Line() == "Grbl 1.1h ['$' for help]");  // the boot that opening the port caused
+  CHECK_FALSE(fresh.Line(0.2));
+}
+
+TEST_CASE("grblHAL: welcome - $I - ALARM:11 at power-up - $X refused with error:46 until $H",
+          "[virtual_cnc][grblhal]") {
+  VirtualCncOptions o;  // homing and soft limits enabled, homing lock on
+  o.time_scale = 50;
+  o.firmware = GrblFirmware::kGrblHal;
+  o.initial_true_position = Eigen::Vector3d(-20, -10, -5);
+  VirtualCnc cnc(o);
+  Host host(cnc.PtyPath());
+  CHECK(*host.Line() == kHalWelcome);
+  CHECK(*host.Line() == "ALARM:11");
+  CHECK(*host.Line() == "[MSG:Homing cycle required]");
+  host.Send("$I\n");
+  CHECK(*host.Line() == "[VER:1.1f.20240101:]");
+  CHECK(*host.Line() == "[OPT:VN,15,128,3,0]");  // the RX buffer size stays the third field
+  CHECK(*host.Line() == "[AXS:3:XYZ]");
+  CHECK(*host.Line() == "[NEWOPT:ENUMS,RT+,HOME]");
+  CHECK(*host.Line() == "[FIRMWARE:grblHAL]");
+  CHECK(*host.Line() == "ok");
+  // Locked: G-code gets the alarm lock, $X is refused and the Alarm stays.
+  CHECK(host.Command("G0X-21") == "error:9");
+  CHECK(host.Command("$X") == "error:46");
+  CHECK(StateOf(host.Status()) == "Alarm");
+  // A reset keeps the lock; ALARM:11 is not printed again (the alarm code did not change).
+  host.Send("\x18");
+  CHECK(*host.Line() == kHalWelcome);
+  CHECK(*host.Line() == "[MSG:Homing cycle required]");
+  CHECK_FALSE(host.Line(0.2));
+  CHECK(host.Command("$H", 10.0) == "ok");
+  CHECK(StateOf(host.Status()) == "Idle");
+  CHECK(host.Command("G0X-5") == "ok");
+  WaitState(host, "Idle");
+  CHECK(cnc.TruePositionNow().isApprox(Eigen::Vector3d(-5, -1, -1), 1e-9));
+  // Homed status survives a reset at rest ...
+  host.Send("\x18");
+  CHECK(*host.Line() == kHalWelcome);
+  CHECK_FALSE(host.Line(0.2));
+  CHECK(StateOf(host.Status()) == "Idle");
+  // ... but not a reset in motion (position lost): locked again.
+  CHECK(host.Command("G1X-100F200") == "ok");
+  WaitMovingPast(host, -6.0);
+  host.Send("\x18");
+  CHECK(*host.Line() == "ALARM:3");
+  CHECK(*host.Line() == kHalWelcome);
+  CHECK(*host.Line() == "ALARM:11");
+  CHECK(*host.Line() == "[MSG:Homing cycle required]");
+  CHECK(host.Command("$X") == "error:46");
+  // A restart is a cold start: locked even after homing.
+  CHECK(host.Command("$H", 10.0) == "ok");
+  cnc.PowerCycle();
+  CHECK(*host.Line() == kHalWelcome);
+  CHECK(*host.Line() == "ALARM:11");
+  CHECK(*host.Line() == "[MSG:Homing cycle required]");
+  CHECK(host.Command("$X") == "error:46");
+}
+
+TEST_CASE("grblHAL: one reply per CRLF line - an error latches until an empty line or a $ line",
+          "[virtual_cnc][grblhal]") {
+  VirtualCncOptions o = FastOptions(0);  // homing disabled: Idle at power-up
+  o.firmware = GrblFirmware::kGrblHal;
+  VirtualCnc cnc(o);
+  Host host(cnc.PtyPath());
+  CHECK(*host.Line() == kHalWelcome);
+  CHECK_FALSE(host.Line(0.2));
+  host.Send("G0X-1\r\n");
+  CHECK(*host.Line() == "ok");
+  CHECK_FALSE(host.Line(0.2));  // GRBL 1.1h answers the empty line after '\r' too
+  // After error:20 the following G-code lines are not executed and get error:20 again.
+  CHECK(host.Command("G5") == "error:20");
+  CHECK(host.Command("G0X-2") == "error:20");
+  CHECK(host.Command("(only a comment)") == "error:20");
+  CHECK(MPos(host.Status())[0] == -1.0);
+  CHECK(host.Command("") == "ok");  // an empty line clears the latch
+  CHECK(host.Command("G0X-2") == "ok");
+  CHECK(MPos(host.Status())[0] == -2.0);
+  // A $ line sets the latch to its own status: $G clears it, a failing one sets it.
+  CHECK(host.Command("G5") == "error:20");
+  CHECK(host.Command("$G") == "ok");
+  CHECK(host.Command("G0X-3") == "ok");
+  CHECK(host.Command("$Q") == "error:2");
+  CHECK(host.Command("G0X-4") == "error:2");
+  CHECK(MPos(host.Status())[0] == -3.0);
+  // A reset clears it.
+  host.Send("\x18");
+  CHECK(*host.Line() == kHalWelcome);
+  CHECK(host.Command("G0X-4") == "ok");
+  // A failed CRLF line: one reply, and the latch holds for the next one.
+  host.Send("G5\r\nG0X-5\r\n");
+  CHECK(*host.Line() == "error:20");
+  CHECK(*host.Line() == "error:20");
+  CHECK_FALSE(host.Line(0.2));
+  CHECK(MPos(host.Status())[0] == -4.0);
+  CHECK(cnc.Stats().errors == 8);
+}
+
+TEST_CASE("homing_init_lock off: Idle at power-up with homing enabled - L in the OPT line",
+          "[virtual_cnc][grblhal]") {
+  for (const GrblFirmware firmware : {GrblFirmware::kGrbl11h, GrblFirmware::kGrblHal}) {
+    const bool hal = firmware == GrblFirmware::kGrblHal;
+    INFO((hal ? "grblHAL" : "GRBL 1.1h"));
+    VirtualCncOptions o;
+    o.time_scale = 0;
+    o.firmware = firmware;
+    o.homing_init_lock = false;
+    VirtualCnc cnc(o);
+    Host host(cnc.PtyPath());
+    CHECK(*host.Line() == (hal ? kHalWelcome : "Grbl 1.1h ['$' for help]"));
+    CHECK_FALSE(host.Line(0.2));
+    CHECK(StateOf(host.Status()) == "Idle");
+    host.Send("$I\n");
+    CHECK(host.Line()->rfind("[VER:", 0) == 0);
+    CHECK(*host.Line() == (hal ? "[OPT:VNL,15,128,3,0]" : "[OPT:VL,15,128]"));
+    host.Until("ok");
+    CHECK(host.Command("$X") == "ok");  // outside Alarm: no effect
+    CHECK(host.Command("G0X-1") == "ok");
+  }
 }
