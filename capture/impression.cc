@@ -1,7 +1,11 @@
 #include "capture/impression.h"
 
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
 #include <stdexcept>
 #include <string>
+#include <vector>
 
 #include <opencv2/imgproc.hpp>
 
@@ -43,6 +47,33 @@ cv::Mat DifferenceMagnitude(const cv::Mat& press, const cv::Mat& reference, cons
   if (!mask.empty()) magnitude.setTo(0.0f, mask == 0);
   if (blur_sigma_px > 0.0) cv::GaussianBlur(magnitude, magnitude, cv::Size(), blur_sigma_px);
   return magnitude;
+}
+
+double ImpressionContrast(const cv::Mat& press, const cv::Mat& reference,
+                          const Eigen::Vector2d& expected_px, double radius_px,
+                          double blur_sigma_px, const cv::Mat& mask) {
+  const cv::Mat magnitude =
+      DifferenceMagnitude(press, reference, mask, blur_sigma_px, "ImpressionContrast");
+  const int r = static_cast<int>(std::ceil(radius_px));
+  cv::Rect window(static_cast<int>(std::lround(expected_px.x())) - r,
+                  static_cast<int>(std::lround(expected_px.y())) - r, 2 * r + 1, 2 * r + 1);
+  window &= cv::Rect(0, 0, magnitude.cols, magnitude.rows);
+  if (window.empty()) return 0.0;
+  double local = 0.0;
+  cv::minMaxLoc(magnitude(window), nullptr, &local);
+  // The frame's level of change: every other pixel is enough for a percentile.
+  std::vector<float> values;
+  values.reserve(magnitude.total() / 4 + 1);
+  for (int y = 0; y < magnitude.rows; y += 2) {
+    const float* row = magnitude.ptr<float>(y);
+    for (int x = 0; x < magnitude.cols; x += 2) {
+      if (mask.empty() || mask.at<std::uint8_t>(y, x) != 0) values.push_back(row[x]);
+    }
+  }
+  if (values.empty()) return 0.0;
+  const auto p99 = values.begin() + static_cast<std::ptrdiff_t>(values.size() * 99 / 100);
+  std::nth_element(values.begin(), p99, values.end());
+  return local / std::max(1e-3, static_cast<double>(*p99));
 }
 
 std::optional<Impression> FindImpression(const cv::Mat& press, const cv::Mat& reference,

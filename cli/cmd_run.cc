@@ -23,6 +23,7 @@ struct StartArgs {
   std::int64_t seed = -1;
   bool plan_only = false;
   bool watch = false;
+  std::string confirm;
 };
 
 void PrintJson(const Json& j) {
@@ -68,6 +69,11 @@ void RegisterStart(CLI::App& run, CommandContext& ctx) {
   start->add_option("--seed", a.seed, "Sampling seed");
   start->add_flag("--plan-only", a.plan_only, "Plan and print the estimate; store nothing");
   start->add_flag("--watch", a.watch, "Follow the run with a progress bar until it stops");
+  start
+      ->add_option("--confirm", a.confirm,
+                   "What you have checked, when the run asks (e.g. on a machine without "
+                   "homing: position)")
+      ->check(CLI::IsMember({"position", "sensor"}));
   start->callback([&ctx] {
     DaemonClient client(ctx.daemon_url, ctx.token);
     const Json created = client.Post("/api/v1/runs", StartRequest(client, a));
@@ -76,7 +82,9 @@ void RegisterStart(CLI::App& run, CommandContext& ctx) {
       return;
     }
     const std::int64_t id = created["id"].get<std::int64_t>();
-    const Json started = client.Post("/api/v1/runs/" + std::to_string(id) + "/start");
+    Json body = Json::object();
+    if (!a.confirm.empty()) body["confirm"] = a.confirm;
+    const Json started = client.Post("/api/v1/runs/" + std::to_string(id) + "/start", body);
     if (ctx.json) {
       PrintJson({{"run", created}, {"start", started}});
     } else {
@@ -127,8 +135,15 @@ void RegisterStatus(CLI::App& run, CommandContext& ctx) {
 void RegisterAction(CLI::App& run, CommandContext& ctx, const std::string& action,
                     const std::string& help) {
   static std::map<std::string, std::int64_t> ids;
+  static std::map<std::string, std::string> confirms;
   auto* cmd = run.add_subcommand(action, help);
   cmd->add_option("run", ids[action], "Run id")->required();
+  if (action == "resume") {
+    cmd->add_option("--confirm", confirms[action],
+                    "What you have checked, answering the run's question (`run status` shows "
+                    "it): position or sensor")
+        ->check(CLI::IsMember({"position", "sensor"}));
+  }
   cmd->callback([&ctx, action] {
     DaemonClient client(ctx.daemon_url, ctx.token);
     const std::string path = "/api/v1/runs/" + std::to_string(ids[action]);
@@ -138,7 +153,9 @@ void RegisterAction(CLI::App& run, CommandContext& ctx, const std::string& actio
       std::printf("run %lld deleted\n", static_cast<long long>(ids[action]));
       return;
     }
-    const Json r = client.Post(path + "/" + action);
+    Json body = Json::object();
+    if (!confirms[action].empty()) body["confirm"] = confirms[action];
+    const Json r = client.Post(path + "/" + action, body);
     if (ctx.json) return PrintJson(r);
     std::printf("run %lld: %s\n", static_cast<long long>(ids[action]),
                 r["message"].get<std::string>().c_str());

@@ -68,6 +68,12 @@ void PrintRun(std::FILE* out, const Json& run) {
   if (!Text(run, "last_error").empty()) {
     std::fprintf(out, "  last error: %s\n", Text(run, "last_error").c_str());
   }
+  if (!Text(run, "awaiting").empty()) {
+    std::fprintf(out,
+                 "  waiting for you to confirm its %s: after checking, `gs360 run resume %lld "
+                 "--confirm %s`\n",
+                 Text(run, "awaiting").c_str(), Count(run, "id"), Text(run, "awaiting").c_str());
+  }
 }
 
 void PrintPlan(std::FILE* out, const Json& plan) {

@@ -46,8 +46,8 @@ int WriteSimCheckerboards(const SimRig& rig, const std::filesystem::path& dir, i
 }
 
 VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t seed,
-                              const std::filesystem::path& frame_socket,
-                              const std::string& symlink) {
+                              const std::filesystem::path& frame_socket, const std::string& symlink,
+                              const std::function<void(VirtualRigOptions&)>& tweak) {
   VirtualRigOptions options;
   options.rig = SimRigOptionsFor(config.rig, seed);
   options.camera.sensor.seed = seed;
@@ -58,6 +58,7 @@ VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t
   options.cnc.history_pieces = 1u << 18;
   options.frame_log_capacity = 1u << 18;
   options.frame_socket = frame_socket;
+  if (tweak) tweak(options);
   VirtualSetup setup;
   setup.rig = std::make_unique<VirtualRig>(options);
   config.machine.uri = symlink.empty() ? setup.rig->PtyPath() : symlink;

@@ -4,6 +4,7 @@
 // make its own hidden truth. Used by `demo`, `sim-rig` and the end-to-end tests only.
 
 #include <filesystem>
+#include <functional>
 #include <memory>
 
 #include "daemon/run_config.h"
@@ -25,9 +26,11 @@ struct VirtualSetup {
 int WriteSimCheckerboards(const SimRig& rig, const std::filesystem::path& dir, int count,
                           std::uint64_t seed);
 
+// `tweak`, when set, adjusts the rig's options (a firmware, its settings) before it is built.
 VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t seed,
                               const std::filesystem::path& frame_socket = {},
-                              const std::string& symlink = {});
+                              const std::string& symlink = {},
+                              const std::function<void(VirtualRigOptions&)>& tweak = {});
 
 }  // namespace gs360::cli
 

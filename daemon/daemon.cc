@@ -60,6 +60,7 @@ Daemon::Daemon(DaemonConfig config) : config_(std::move(config)) {
                              config_.data_dir.string() + ")";
   data_lock_ = InstanceLock::Acquire(config_.data_dir / "gs360d.lock",
                                      "the data folder " + config_.data_dir.string(), holder);
+  holder_ = holder;
   if (!config_.run.machine.uri.empty()) {
     port_lock_ = InstanceLock::Acquire(MachineLockPath(config_.run.machine.uri),
                                        "the machine port " + config_.run.machine.uri, holder);
@@ -107,6 +108,24 @@ void Daemon::Shutdown() {
   hub_.Close();
 }
 
+void Daemon::FollowPortLock() {
+  if (config_.run.machine.uri.empty()) return;
+  const std::filesystem::path now = MachineLockPath(config_.run.machine.uri);
+  std::lock_guard lock(port_lock_mutex_);
+  if (now == port_lock_.path()) return;
+  try {
+    InstanceLock moved =
+        InstanceLock::Acquire(now, "the machine port " + config_.run.machine.uri, holder_);
+    spdlog::info("gs360d: {} now names another device: its lock moved from {} to {}",
+                 config_.run.machine.uri, port_lock_.path().string(), now.string());
+    port_lock_ = std::move(moved);
+  } catch (const std::exception& e) {
+    // Held by another daemon: keep ours; say so once per new name.
+    if (now != port_lock_warned_) spdlog::warn("gs360d: {}", e.what());
+    port_lock_warned_ = now;
+  }
+}
+
 void Daemon::SetUrl(const std::string& url) {
   {
     std::lock_guard lock(mutex_);
@@ -114,9 +133,9 @@ void Daemon::SetUrl(const std::string& url) {
   }
   data_lock_.SetHolder("gs360d pid " + std::to_string(::getpid()) + " at " + url +
                        " (data folder " + config_.data_dir.string() + ")");
-  if (port_lock_.Held()) {
-    port_lock_.SetHolder("gs360d pid " + std::to_string(::getpid()) + " at " + url);
-  }
+  std::lock_guard port_lock(port_lock_mutex_);
+  holder_ = "gs360d pid " + std::to_string(::getpid()) + " at " + url;
+  if (port_lock_.Held()) port_lock_.SetHolder(holder_);
   WriteText(config_.data_dir / "daemon.json",
             Json{{"pid", ::getpid()}, {"url", url}, {"started_at", started_at_}}.dump() + "\n");
 }
@@ -170,6 +189,7 @@ Json Daemon::RunView(const RunRecord& run, const ProbeCounts& counts) const {
             {"machine_state", nullptr},
             {"machine_position", nullptr},
             {"last_error", run.last_error.empty() ? Json(nullptr) : Json(run.last_error)},
+            {"awaiting", run.awaiting.empty() ? Json(nullptr) : Json(run.awaiting)},
             {"created_at", run.created_at},
             {"started_at", Optional(run.started_at)},
             {"updated_at", run.updated_at},

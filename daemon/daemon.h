@@ -73,6 +73,10 @@ class Daemon {
   EventHub& events() { return hub_; }
   // Called once the server listens: records the URL in daemon.json and the lock's holder line.
   void SetUrl(const std::string& url);
+  // The machine port's lock follows the device the configured URI names now: a symlink that
+  // moved to a replugged controller's new pty takes the lock along and frees the old name for
+  // another machine. Cheap (one canonical() call); the event pump calls it every 200 ms.
+  void FollowPortLock();
   // One line for sd_notify's STATUS= and the log: "run 3: 812/2011 probes, ETA 1h 02m".
   std::string StatusLine() const;
 
@@ -99,8 +103,11 @@ class Daemon {
   // field (unknown key, wrong type, invalid value, a plan that breaks a safety limit),
   // MeshError, std::runtime_error (nothing reachable).
   nlohmann::json CreateRun(const nlohmann::json& request, bool* created);
-  ActionResult Start(std::int64_t run_id);   // created -> running
-  ActionResult Resume(std::int64_t run_id);  // paused / interrupted -> running
+  // created -> running, and paused / interrupted -> running. `confirm`: what the user has
+  // checked, answering the run's `awaiting` ("position", "sensor", or ""); a confirmation of
+  // something else than what the run waits for is a conflict.
+  ActionResult Start(std::int64_t run_id, const std::string& confirm = "");
+  ActionResult Resume(std::int64_t run_id, const std::string& confirm = "");
   ActionResult Pause(std::int64_t run_id);   // running: after the current probe
   ActionResult Cancel(std::int64_t run_id);  // running (after the probe, then park) or idle
   ActionResult Delete(std::int64_t run_id);  // not running, not calibrating
@@ -114,7 +121,7 @@ class Daemon {
  private:
   RunDatabase& Reader() const;
   void MarkDeadRunsInterrupted();
-  ActionResult Launch(std::int64_t run_id, bool resume);
+  ActionResult Launch(std::int64_t run_id, bool resume, const std::string& confirm);
   void WatchSession(std::int64_t run_id);
   void PumpEvents();
   void OnProgress(const RunProgress& progress);
@@ -128,6 +135,9 @@ class Daemon {
   DaemonConfig config_;
   InstanceLock data_lock_;
   InstanceLock port_lock_;
+  std::mutex port_lock_mutex_;  // guards port_lock_ after construction
+  std::string holder_;          // the locks' holder line
+  std::filesystem::path port_lock_warned_;
   double started_at_ = 0.0;
   EventHub hub_;
   std::unique_ptr<CalibrationJobs> calibration_;

@@ -112,15 +112,20 @@ Json Daemon::CreateRun(const Json& request, bool* created) {
   return view;
 }
 
-ActionResult Daemon::Start(std::int64_t run_id) {
-  return Launch(run_id, false);
+ActionResult Daemon::Start(std::int64_t run_id, const std::string& confirm) {
+  return Launch(run_id, false, confirm);
 }
 
-ActionResult Daemon::Resume(std::int64_t run_id) {
-  return Launch(run_id, true);
+ActionResult Daemon::Resume(std::int64_t run_id, const std::string& confirm) {
+  return Launch(run_id, true, confirm);
 }
 
-ActionResult Daemon::Launch(std::int64_t run_id, bool resume) {
+ActionResult Daemon::Launch(std::int64_t run_id, bool resume, const std::string& confirm) {
+  if (!confirm.empty() && confirm != "position" && confirm != "sensor") {
+    throw ConfigError(
+        "request: confirm: expected \"position\" or \"sensor\", got \"" + confirm + "\"",
+        "confirm");
+  }
   std::lock_guard lock(mutex_);
   if (stopping_) return {ActionStatus::kConflict, "the daemon is shutting down", ""};
   RunDatabase db(config_.DatabasePath());
@@ -130,8 +135,10 @@ ActionResult Daemon::Launch(std::int64_t run_id, bool resume) {
   if (active_run_ != 0) {
     return Conflict("run " + std::to_string(active_run_) + " is using the machine", run->state);
   }
+  // A created run that asked at its start (awaiting) is resumed like any other.
   const bool startable =
-      resume ? (run->state == RunState::kPaused || run->state == RunState::kInterrupted)
+      resume ? (run->state == RunState::kPaused || run->state == RunState::kInterrupted ||
+                (run->state == RunState::kCreated && !run->awaiting.empty()))
              : run->state == RunState::kCreated;
   if (!startable) {
     return Conflict(std::string(resume ? "only a paused or interrupted run can be resumed"
@@ -140,6 +147,11 @@ ActionResult Daemon::Launch(std::int64_t run_id, bool resume) {
                     run->state);
   }
   if (calibration_->Running() == run_id) return Conflict("run is being calibrated", run->state);
+  if (!confirm.empty() && !run->awaiting.empty() && confirm != run->awaiting) {
+    return Conflict("the run waits for its " + run->awaiting + " to be confirmed, not its " +
+                        confirm + ": " + run->last_error,
+                    run->state);
+  }
   if (config_.run.machine.uri.empty() || config_.run.camera.uri.empty()) {
     return Conflict("gs360d.toml names no machine.uri or camera.uri: nothing to run on",
                     run->state);
@@ -148,6 +160,7 @@ ActionResult Daemon::Launch(std::int64_t run_id, bool resume) {
   SessionOverrides overrides;
   overrides.machine_uri = config_.run.machine.uri;
   overrides.camera_uri = config_.run.camera.uri;
+  overrides.confirm = confirm;
   if (watcher_.joinable()) watcher_.join();
   engine_->Start(run_id, overrides);
   active_run_ = run_id;
@@ -155,7 +168,8 @@ ActionResult Daemon::Launch(std::int64_t run_id, bool resume) {
   progress_.run_id = run_id;
   progress_.phase = "connecting";
   watcher_ = std::thread([this, run_id] { WatchSession(run_id); });
-  spdlog::info("run {}: {}", run_id, resume ? "resuming" : "starting");
+  spdlog::info("run {}: {}{}", run_id, resume ? "resuming" : "starting",
+               confirm.empty() ? "" : " (the user confirms the " + confirm + ")");
   return {ActionStatus::kAccepted, resume ? "resuming" : "starting", "starting"};
 }
 
@@ -362,6 +376,7 @@ void Daemon::PumpEvents() {
     } catch (const std::exception& e) {
       spdlog::warn("event pump: {}", e.what());
     }
+    FollowPortLock();
     std::unique_lock lock(pump_mutex_);
     pump_wake_.wait_for(lock, std::chrono::milliseconds(200), [&] { return stopping_.load(); });
   }

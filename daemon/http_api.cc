@@ -283,15 +283,20 @@ void HttpApi::Impl::RunRoutes() {
                   }
                   const Json body = ParseBody(req, config.max_body_bytes);
                   const std::string action = req.matches[2];
-                  if (action != "calibrate" && !body.empty()) {
+                  std::string confirm;
+                  if (action == "start" || action == "resume") {
+                    JsonReader reader(body, "request");
+                    reader.Get("confirm", confirm);
+                    reader.RejectUnknown();
+                  } else if (action != "calibrate" && !body.empty()) {
                     throw ConfigError(
                         "request body: " + action + " takes no fields, got " + body.begin().key(),
                         body.begin().key());
                   }
                   ActionResult r;
-                  if (action == "start") r = daemon.Start(*id);
+                  if (action == "start") r = daemon.Start(*id, confirm);
                   if (action == "pause") r = daemon.Pause(*id);
-                  if (action == "resume") r = daemon.Resume(*id);
+                  if (action == "resume") r = daemon.Resume(*id, confirm);
                   if (action == "cancel") r = daemon.Cancel(*id);
                   if (action == "calibrate") r = daemon.Calibrate(*id, body);
                   SendAction(res, *id, r);

@@ -61,12 +61,27 @@ nlohmann::json PlanOptionsToJson(const PlanOptions& p) {
   j["optimise_order"] = p.optimise_order;
   j["return_to_start"] = p.return_to_start;
   j["start_machine"] = {p.start_machine.x(), p.start_machine.y(), p.start_machine.z()};
+  const auto vec = [](const Eigen::Vector3d& v) { return nlohmann::json{v.x(), v.y(), v.z()}; };
+  j["machine"] = {{"max_rate_mm_per_min", vec(p.machine.max_rate_mm_per_min)},
+                  {"acceleration_mm_per_s2", vec(p.machine.acceleration_mm_per_s2)},
+                  {"max_travel_mm", vec(p.machine.max_travel_mm)},
+                  {"junction_deviation_mm", p.machine.junction_deviation_mm},
+                  {"planner_blocks", p.machine.planner_blocks}};
   return j;
 }
 
 }  // namespace
 
-void ReadPlanOptions(JsonReader& r, PlanOptions& p) {
+static void ReadMachineSettings(JsonReader& r, MachineSettings& m) {
+  r.Get("max_rate_mm_per_min", m.max_rate_mm_per_min);
+  r.Get("acceleration_mm_per_s2", m.acceleration_mm_per_s2);
+  r.Get("max_travel_mm", m.max_travel_mm);
+  r.Get("junction_deviation_mm", m.junction_deviation_mm);
+  r.Get("planner_blocks", m.planner_blocks);
+}
+
+void ReadPlanOptions(JsonReader& r, PlanOptions& p, bool machine) {
+  if (machine) r.Object("machine", [&](JsonReader& o) { ReadMachineSettings(o, p.machine); });
   for (const auto& f : kPlanDoubles) r.Get(f.name, p.*(f.member));
   for (const auto& f : kPlanInts) r.Get(f.name, p.*(f.member));
   r.Get("seed", p.seed);
@@ -107,6 +122,16 @@ void EngineConfig::Check() const {
   }
   if (max_recoveries < 0) {
     Invalid("engine.max_recoveries", std::to_string(max_recoveries), "must be >= 0");
+  }
+  if (!(impression_min_contrast >= 1.0)) {
+    Invalid("engine.impression_min_contrast", std::to_string(impression_min_contrast),
+            "must be >= 1");
+  }
+  if (!(impression_radius_px > 0.0)) {
+    Invalid("engine.impression_radius_px", std::to_string(impression_radius_px), "must be > 0");
+  }
+  if (unverified_resume != "ask" && unverified_resume != "continue") {
+    Invalid("engine.unverified_resume", "\"" + unverified_resume + "\"", "must be ask or continue");
   }
 }
 
@@ -153,14 +178,18 @@ nlohmann::json RunConfigToJson(const RunConfig& c) {
         {"recheck_max_shift_px", c.engine.recheck_max_shift_px},
         {"sync_timeout_s", c.engine.sync_timeout_s},
         {"reconnect_timeout_s", c.engine.reconnect_timeout_s},
-        {"max_recoveries", c.engine.max_recoveries}}},
+        {"max_recoveries", c.engine.max_recoveries},
+        {"require_impression", c.engine.require_impression},
+        {"impression_min_contrast", c.engine.impression_min_contrast},
+        {"impression_radius_px", c.engine.impression_radius_px},
+        {"unverified_resume", c.engine.unverified_resume}}},
   };
 }
 
 void ReadRunConfig(JsonReader& r, RunConfig& c) {
   r.Get("name", c.name);
   r.Object("rig", [&](JsonReader& o) { ReadRigConfig(o, c.rig); });
-  r.Object("plan", [&](JsonReader& o) { ReadPlanOptions(o, c.plan); });
+  r.Object("plan", [&](JsonReader& o) { ReadPlanOptions(o, c.plan, /*machine=*/true); });
   c.plan.ball_radius = c.rig.ball_radius;
   r.Object("machine", [&](JsonReader& o) {
     o.Get("uri", c.machine.uri);
@@ -194,6 +223,10 @@ void ReadRunConfig(JsonReader& r, RunConfig& c) {
     o.Get("sync_timeout_s", c.engine.sync_timeout_s);
     o.Get("reconnect_timeout_s", c.engine.reconnect_timeout_s);
     o.Get("max_recoveries", c.engine.max_recoveries);
+    o.Get("require_impression", c.engine.require_impression);
+    o.Get("impression_min_contrast", c.engine.impression_min_contrast);
+    o.Get("impression_radius_px", c.engine.impression_radius_px);
+    o.Get("unverified_resume", c.engine.unverified_resume);
   });
 }
 

@@ -38,6 +38,16 @@ struct EngineConfig {
   double sync_timeout_s = 120.0;      // longest wait for a press's G4 ok
   double reconnect_timeout_s = 60.0;  // how long a vanished port is waited for
   int max_recoveries = 10;            // resets / reconnects handled in one session before giving up
+  // A press frame must show an impression where the probe's point projects (through the nominal
+  // camera) against the session's reference frame: ImpressionContrast (capture/impression.h)
+  // at least impression_min_contrast within impression_radius_px. A frame that does not is a
+  // probe failure (retried up to max_attempts).
+  bool require_impression = true;
+  double impression_min_contrast = 1.4;
+  double impression_radius_px = 40.0;
+  // When the resume check could compare no re-pressed probe: "ask" (stop, awaiting "sensor") or
+  // "continue" (a warning in the log).
+  std::string unverified_resume = "ask";
   void Check() const;
 };
 
@@ -58,8 +68,10 @@ nlohmann::json RunConfigToJson(const RunConfig& config);
 // Reads the sections present (name, rig, plan, machine, camera, engine) into `config`; absent
 // keys keep its values; no Check(). For larger documents (the daemon's configuration).
 void ReadRunConfig(JsonReader& reader, RunConfig& config);
-// The plan options a user may set (docs/running.md), read into `plan`.
-void ReadPlanOptions(JsonReader& reader, PlanOptions& plan);
+// The plan options a user may set (docs/running.md), read into `plan`. With `machine`, also the
+// "machine" object (the controller's rates, accelerations and travel: gs360d.toml's
+// [plan.machine], never a run's request).
+void ReadPlanOptions(JsonReader& reader, PlanOptions& plan, bool machine = false);
 // Strict: unknown keys, wrong types and invalid values are ConfigError naming `where` and the
 // field path. Absent keys keep their defaults.
 RunConfig RunConfigFromJson(const nlohmann::json& json, const std::string& where);

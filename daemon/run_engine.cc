@@ -1,4 +1,5 @@
 #include "daemon/run_engine.h"
+#include "daemon/run_session.h"
 
 #include <algorithm>
 #include <chrono>
@@ -23,44 +24,21 @@
 namespace gs360 {
 namespace {
 
-using Clock = std::chrono::steady_clock;
 constexpr const char* kPlanStage = "plan";
 
-std::string Fmt3(const Eigen::Vector3d& v) {
+}  // namespace
+
+using session::Clock;
+using session::Fmt3;
+using session::Ms;
+using session::Press;
+using session::Step;
+using session::StepKind;
+
+std::string session::Fmt3(const Eigen::Vector3d& v) {
   return "(" + FormatFixed(v.x(), 3) + ", " + FormatFixed(v.y(), 3) + ", " + FormatFixed(v.z(), 3) +
          ")";
 }
-
-std::chrono::milliseconds Ms(double seconds) {
-  return std::chrono::milliseconds(static_cast<long long>(std::ceil(seconds * 1000.0)));
-}
-
-// How one probe's streaming ended.
-enum class StepKind {
-  kOk,
-  kProbeError,    // error:N on one of its lines, or no frame / no position: the probe fails
-  kAlarm,         // the machine raised an alarm: stop the run
-  kReset,         // the controller reset: everything in flight is void, position lost
-  kDisconnected,  // the port vanished
-  kStall,         // no sync ok within the timeout
-  kSafety,        // a line would break a safety limit: nothing of it was sent
-};
-
-struct Step {
-  StepKind kind = StepKind::kOk;
-  std::string message;
-};
-
-// What a successful press produced.
-struct Press {
-  cv::Mat frame;
-  cv::Mat reference;  // the no-contact frame taken first, when one was asked for
-  Eigen::Vector3d mpos = Eigen::Vector3d::Zero();
-  std::chrono::steady_clock::time_point sync{};
-  std::chrono::steady_clock::time_point frame_time{};
-};
-
-}  // namespace
 
 std::string_view ToString(RunOutcome outcome) {
   switch (outcome) {
@@ -74,75 +52,11 @@ std::string_view ToString(RunOutcome outcome) {
       return "cancelled";
     case RunOutcome::kFailed:
       return "failed";
+    case RunOutcome::kAwaiting:
+      return "awaiting confirmation";
   }
   return "unknown";
 }
-
-// One Execute() call: owns the connections for its duration.
-class RunSession {
- public:
-  RunSession(RunEngine& engine, std::int64_t run_id, SessionOverrides overrides)
-      : engine_(engine), run_id_(run_id), db_(engine.database_), overrides_(std::move(overrides)) {}
-
-  RunReport Run();
-
- private:
-  // Set-up.
-  void LoadRun();
-  void ConnectMachine();
-  void HomeOrVerify();
-  // Probing.
-  Step PressProbe(const PlannedProbe& planned, bool take_reference, Press* out);
-  Step SendAndSync(const std::vector<std::string>& lines, Clock::time_point* sync_at);
-  Step Classify(const std::vector<GrblHandle>& handles);
-  std::optional<std::vector<Eigen::Vector3d>> TravelTo(const PlannedProbe& planned);
-  bool Recover(const Step& step);
-  void ReturnToSafety(const PlannedProbe& planned);
-  std::optional<std::string> RecheckSensor();
-  void Park();
-  void SendRetract(const ProbeProgram& program, const PlannedProbe& planned);
-  // The lines that would break a safety limit, sent from `from` in order; nullopt when all pass
-  // (or no limits are set). Records the violation for the run loop to stop on.
-  std::optional<std::string> Unsafe(const std::vector<std::string>& lines,
-                                    const Eigen::Vector3d& from);
-  // Bookkeeping.
-  double ToUnix(Clock::time_point t) const {
-    return std::chrono::duration<double>(t - steady_origin_).count() + unix_origin_;
-  }
-  void Publish(const std::string& phase, int plan_index = -1);
-  void Event(EventLevel level, const std::string& message) {
-    if (level >= EventLevel::kWarning) {
-      spdlog::warn("run {}: {}", run_id_, message);
-    } else {
-      spdlog::info("run {}: {}", run_id_, message);
-    }
-    db_.AppendEvent(run_id_, level, message);
-  }
-
-  RunEngine& engine_;
-  std::int64_t run_id_;
-  RunDatabase db_;
-  SessionOverrides overrides_;
-  RunConfig config_;
-  ProbePlan plan_;
-  std::shared_ptr<TravelPlanner> travel_;
-  std::unique_ptr<SafetyGuard> guard_;
-  std::optional<std::string> safety_stop_;  // a refused line: the run stops after this probe
-  std::unique_ptr<GrblClient> client_;
-  std::unique_ptr<FrameSource> source_;
-  ReferenceSchedule references_;
-  Eigen::Vector3d position_ = Eigen::Vector3d::Zero();  // where the streamed lines leave the tool
-  int at_retract_of_ = -2;  // plan index whose retract position the tool is at (-1: plan start)
-  std::optional<std::int64_t> last_reference_at_;  // probes done when the last reference was taken
-  std::int64_t probes_done_ = 0;
-  int recoveries_ = 0;
-  RunReport report_;
-  Clock::time_point session_start_ = Clock::now();
-  Clock::time_point steady_origin_ = Clock::now();
-  double unix_origin_ =
-      std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
-  double recent_probe_s_ = 0.0;  // exponential mean of seconds per committed probe
-};
 
 // ---------------------------------------------------------------------------------------------
 
@@ -168,6 +82,7 @@ void RunSession::LoadRun() {
   }
   plan_ = RunEngine::LoadPlan(db_, run_id_);
   travel_ = std::make_shared<TravelPlanner>(MakeRigGeometry(config_.rig), config_.plan);
+  camera_ = std::make_unique<FisheyeCamera>(config_.rig.camera);
   if (engine_.limits_) {
     guard_ = std::make_unique<SafetyGuard>(*engine_.limits_, travel_, config_.rig.ball_radius,
                                            config_.rig.gel_thickness);
@@ -180,59 +95,6 @@ void RunSession::LoadRun() {
                              std::to_string(counts.total));
   }
   probes_done_ = counts.captured + counts.skipped;
-}
-
-void RunSession::ConnectMachine() {
-  Publish("connecting");
-  TransportOptions transport;
-  transport.baud = config_.machine.baud;
-  client_ = GrblClient::ForUri(config_.machine.uri, transport);
-  const GrblMachineInfo info = client_->Connect();
-  Event(EventLevel::kInfo, "connected to " + info.firmware + " " + info.version + " at " +
-                               config_.machine.uri + " (RX buffer " +
-                               std::to_string(info.rx_buffer_bytes) + " bytes)");
-  // The plan's time estimate assumed config_.plan.machine; a controller with other rates makes
-  // the ETA wrong (not the motion: GRBL enforces its own limits).
-  const MachineSettings actual = MachineSettings::FromGrblSettings(info.settings);
-  for (int axis = 0; axis < 3; ++axis) {
-    if (std::abs(actual.max_rate_mm_per_min[axis] -
-                 config_.plan.machine.max_rate_mm_per_min[axis]) > 1e-6) {
-      Event(EventLevel::kWarning,
-            "controller max rate $11" + std::to_string(axis) + " = " +
-                FormatFixed(actual.max_rate_mm_per_min[axis], 1) +
-                " mm/min differs from the plan's " +
-                FormatFixed(config_.plan.machine.max_rate_mm_per_min[axis], 1) +
-                "; the ETA will be off");
-      break;
-    }
-  }
-}
-
-void RunSession::HomeOrVerify() {
-  if (config_.machine.home) {
-    Publish("homing");
-    const GrblReply reply = client_->Home();
-    if (!reply.Ok()) {
-      throw std::runtime_error("homing failed at " + config_.machine.uri + ": " + reply.Describe());
-    }
-  } else {
-    if (client_->Alarmed()) {
-      const GrblReply unlock = client_->Unlock();
-      if (!unlock.Ok()) throw std::runtime_error("unlock ($X) failed: " + unlock.Describe());
-    }
-    client_->MarkPositionTrusted();
-  }
-  for (const std::string& line : ProgramPreamble()) {
-    const GrblReply r = client_->WaitForOk(client_->Send(line), std::chrono::seconds(10));
-    if (!r.Ok()) throw std::runtime_error("preamble '" + line + "' failed: " + r.Describe());
-  }
-  const auto status = client_->QueryStatus(std::chrono::seconds(5));
-  if (!status || !status->machine_position) {
-    throw std::runtime_error("the controller at " + config_.machine.uri +
-                             " reports no machine position");
-  }
-  position_ = *status->machine_position;
-  at_retract_of_ = (position_ - plan_.start_machine).norm() < 1e-3 ? -1 : -2;
 }
 
 void RunSession::Publish(const std::string& phase, int plan_index) {
@@ -321,6 +183,7 @@ std::optional<std::string> RunSession::Unsafe(const std::vector<std::string>& li
 
 Step RunSession::SendAndSync(const std::vector<std::string>& lines, Clock::time_point* sync_at) {
   if (auto bad = Unsafe(lines, position_)) return {StepKind::kSafety, *bad};
+  Commanded(lines, position_);
   std::vector<GrblHandle> handles;
   handles.reserve(lines.size());
   for (const std::string& line : lines) handles.push_back(client_->Send(line));
@@ -334,7 +197,10 @@ Step RunSession::SendAndSync(const std::vector<std::string>& lines, Clock::time_
     if (client_->Alarmed() || !client_->Connected() || Clock::now() >= deadline) break;
   }
   Step step = Classify(handles);
-  if (step.kind == StepKind::kOk) *sync_at = last.received_at;
+  if (step.kind == StepKind::kOk) {
+    *sync_at = last.received_at;
+    if (!last_path_.empty()) last_path_ = {last_path_.back()};  // all executed: at the end
+  }
   return step;
 }
 
@@ -364,6 +230,7 @@ Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference,
     db_.AddReferenceFrame(run_id_, ref.image, ToUnix(ref.last_timestamp));
     last_reference_at_ = probes_done_;
     out->reference = ref.image;
+    session_reference_ = ref.image;
   }
 
   Clock::time_point sync;
@@ -386,6 +253,23 @@ Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference,
   if (!sample || !sample->machine_position) {
     return {StepKind::kProbeError, "no status report (machine position) after the press"};
   }
+  // A press that left no mark (the ball missed the gel, the sensor moved, the camera froze) is
+  // not a calibration sample.
+  if (config_.engine.require_impression && !session_reference_.empty()) {
+    const auto expected = camera_->CamToPixel(config_.rig.cam_from_sensor() * planned.point_sensor);
+    if (expected) {
+      const double contrast = ImpressionContrast(capture.image, session_reference_, *expected,
+                                                 config_.engine.impression_radius_px);
+      if (contrast < config_.engine.impression_min_contrast) {
+        return {StepKind::kProbeError,
+                "no impression in the press frame near pixel (" + FormatFixed(expected->x(), 0) +
+                    ", " + FormatFixed(expected->y(), 0) + "): contrast " +
+                    FormatFixed(contrast, 2) + " against the session's reference frame (at least " +
+                    FormatFixed(config_.engine.impression_min_contrast, 2) +
+                    "); the ball did not mark the gel where planned"};
+      }
+    }
+  }
   // GRBL lines carry no checksum: a garbled digit can still parse as a valid move. The machine
   // must report the press position before the frame counts as that probe's.
   const double off = (*sample->machine_position - planned.press_machine).norm();
@@ -404,136 +288,59 @@ Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference,
 
 void RunSession::SendRetract(const ProbeProgram& program, const PlannedProbe& planned) {
   if (Unsafe(program.retract, position_)) return;
+  Commanded(program.retract, position_);
   for (const std::string& line : program.retract) client_->Send(line);
   position_ = planned.retract_machine;
   at_retract_of_ = planned.plan_index;
 }
 
-void RunSession::ReturnToSafety(const PlannedProbe& planned) {
-  // After a failed line the tool may be anywhere on this probe's way in; its approach point is
-  // straight out along the normal, so going there first is always clear.
-  client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
-  const auto status = client_->QueryStatus(std::chrono::seconds(2));
-  if (status && status->machine_position) position_ = *status->machine_position;
-  const TravelPlanner::Gaps gaps = travel_->ToolGaps(travel_->BallFromMachine(position_));
-  if (gaps.Min() < config_.plan.travel_clearance * 0.5) {
-    const std::string line = MachineMoveLine(planned.approach_machine);
-    if (Unsafe({line}, position_)) return;
-    const GrblReply r = client_->WaitForOk(client_->Send(line), Ms(config_.engine.sync_timeout_s));
-    if (r.Ok()) position_ = planned.approach_machine;
-  }
-  at_retract_of_ = -2;
-}
-
-bool RunSession::Recover(const Step& step) {
-  if (++recoveries_ > config_.engine.max_recoveries) return false;
-  ++report_.recoveries;
-  Event(EventLevel::kWarning, step.message + "; recovering (" + std::to_string(recoveries_) + "/" +
-                                  std::to_string(config_.engine.max_recoveries) + ")");
-  if (step.kind == StepKind::kDisconnected || !client_->Connected()) {
-    Publish("reconnecting");
-    if (!client_->Reconnect(Ms(config_.engine.reconnect_timeout_s))) {
-      Event(EventLevel::kError, "the controller at " + config_.machine.uri +
-                                    " did not come back within " +
-                                    FormatFixed(config_.engine.reconnect_timeout_s, 0) + " s");
-      return false;
-    }
-  } else if (step.kind == StepKind::kStall) {
-    // A controller that stopped answering: a soft reset voids whatever it still holds.
-    if (!client_->SoftReset()) return false;
-  }
-  try {
-    HomeOrVerify();
-  } catch (const std::exception& e) {
-    Event(EventLevel::kError, std::string("after recovery: ") + e.what());
-    return false;
-  }
-  return true;
-}
-
-std::optional<std::string> RunSession::RecheckSensor() {
-  const auto captured = db_.ListCapturedProbes(run_id_);
-  const int want = std::min<int>(config_.engine.recheck_probes, static_cast<int>(captured.size()));
-  if (want == 0) return std::nullopt;
-  Publish("rechecking");
-  // Spread over the run: early, middle and late probes.
-  std::vector<std::size_t> picks;
-  for (int i = 0; i < want; ++i) {
-    picks.push_back(want == 1 ? captured.size() - 1
-                              : static_cast<std::size_t>(i) * (captured.size() - 1) /
-                                    static_cast<std::size_t>(want - 1));
-  }
-  cv::Mat reference;
-  int compared = 0;
-  double worst = 0.0;
-  for (std::size_t k = 0; k < picks.size(); ++k) {
-    const CapturedProbe& old = captured[picks[k]];
-    const PlannedProbe& planned = plan_.probes.at(static_cast<std::size_t>(old.probe.plan_index));
-    Press press;
-    const Step step = PressProbe(planned, k == 0, &press);
-    if (step.kind != StepKind::kOk) {
-      return "re-pressing probe " + std::to_string(old.probe.plan_index) +
-             " failed: " + step.message;
-    }
-    if (k == 0) reference = press.reference;
-    const cv::Mat stored = db_.LoadFrame(old.frame_id);
-    const auto stored_ref_info = db_.NearestReferenceFrame(run_id_, old.frame_time);
-    if (!stored_ref_info || reference.empty()) continue;
-    const cv::Mat stored_ref = db_.LoadFrame(stored_ref_info->id);
-    const auto a = FindImpression(stored, stored_ref);
-    const auto b = FindImpression(press.frame, reference);
-    if (!a || !b) continue;
-    const double shift = (a->centroid - b->centroid).norm();
-    worst = std::max(worst, shift);
-    ++compared;
-    if (shift > config_.engine.recheck_max_shift_px) {
-      return "the sensor has moved since the run was interrupted: probe " +
-             std::to_string(old.probe.plan_index) + "'s impression was at (" +
-             FormatFixed(a->centroid.x(), 1) + ", " + FormatFixed(a->centroid.y(), 1) +
-             ") px and is now at (" + FormatFixed(b->centroid.x(), 1) + ", " +
-             FormatFixed(b->centroid.y(), 1) + ") px, a shift of " + FormatFixed(shift, 2) +
-             " px (limit " + FormatFixed(config_.engine.recheck_max_shift_px, 2) +
-             "). Re-seat the sensor exactly as before, or start a new run.";
-    }
-  }
-  if (compared == 0) {
-    Event(EventLevel::kWarning,
-          "resume: no re-pressed probe showed a comparable impression; "
-          "the sensor position could not be verified");
-  } else {
-    Event(EventLevel::kInfo, "resume: " + std::to_string(compared) +
-                                 " re-pressed probes match their stored frames (largest shift " +
-                                 FormatFixed(worst, 2) + " px)");
-  }
-  return std::nullopt;
-}
-
-void RunSession::Park() {
-  Publish("parking");
-  const auto path = travel_->Path(position_, plan_.start_machine);
-  if (!path) {
-    Event(EventLevel::kWarning,
-          "no clear path back to the start position; the tool stays at " + Fmt3(position_));
+void RunSession::SettleAndRecord() {
+  if (!client_ || !client_->Connected() || client_->Alarmed() || !client_->PositionTrusted()) {
     return;
   }
-  std::vector<std::string> lines = TravelLines(*path);
-  lines.push_back(MachineMoveLine(plan_.start_machine));
-  if (auto bad = Unsafe(lines, position_)) {
-    Event(EventLevel::kError, "not parking: " + *bad);
-    return;
+  // The motion sent has ended where it was sent: the next session starts from one known point.
+  if (client_->WaitIdle(Ms(config_.engine.sync_timeout_s)) == GrblWaitResult::kIdle &&
+      !last_path_.empty()) {
+    last_path_ = {last_path_.back()};
+    db_.SetCommandedPath(run_id_, last_path_);
   }
-  for (const auto& line : lines) client_->Send(line);
-  position_ = plan_.start_machine;
-  client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
+}
+
+RunReport RunSession::Awaiting(const Ask& ask) {
+  report_.outcome = RunOutcome::kAwaiting;
+  report_.message = ask.message;
+  SettleAndRecord();
+  if (db_.GetRun(run_id_)->state == RunState::kRunning) {
+    db_.SetRunState(run_id_, RunState::kInterrupted);
+  }
+  spdlog::warn("run {}: waiting for the user to confirm the {}: {}", run_id_, ask.what,
+               ask.message);
+  db_.SetRunAwaiting(run_id_, ask.what, ask.message);
+  report_.counts = db_.CountProbes(run_id_);
+  report_.seconds = std::chrono::duration<double>(Clock::now() - session_start_).count();
+  Publish("idle");
+  return report_;
 }
 
 RunReport RunSession::Run() {
   LoadRun();
+  if (const auto run = db_.GetRun(run_id_);
+      !run->awaiting.empty() && overrides_.confirm != run->awaiting) {
+    // Still waiting for the user: a fresh look at the machine cannot answer what a restart or
+    // a failed check left open (its MPos may even agree with the motion sent). Nothing is
+    // opened, nothing moves.
+    report_.outcome = RunOutcome::kAwaiting;
+    report_.message = run->last_error;
+    report_.counts = db_.CountProbes(run_id_);
+    return report_;
+  }
   const bool resuming = db_.CountProbes(run_id_).captured > 0;
   source_ = OpenFrameSource(config_.camera.uri, config_.camera.controls);
   source_->Start();
   ConnectMachine();
-  HomeOrVerify();
+  if (auto ask = EstablishPosition(db_.GetRun(run_id_)->commanded_path)) {
+    return Awaiting(*ask);
+  }
   db_.SetRunState(run_id_, RunState::kRunning);
   Event(EventLevel::kInfo, std::string(resuming ? "resumed" : "started") + ": " +
                                std::to_string(db_.CountProbes(run_id_).planned) + " probes to go");
@@ -541,9 +348,7 @@ RunReport RunSession::Run() {
   auto finish = [&](RunOutcome outcome, RunState state, const std::string& message) {
     report_.outcome = outcome;
     report_.message = message;
-    if (client_ && client_->Connected() && !client_->Alarmed()) {
-      client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
-    }
+    SettleAndRecord();
     db_.SetRunState(run_id_, state);
     if (outcome == RunOutcome::kFailed) {
       spdlog::error("run {}: {}", run_id_, message);
@@ -558,10 +363,16 @@ RunReport RunSession::Run() {
   };
 
   if (resuming && config_.engine.recheck_probes > 0) {
-    if (auto moved = RecheckSensor()) {
-      return finish(RunOutcome::kFailed, RunState::kInterrupted, *moved);
+    if (auto problem = RecheckSensor()) {
+      if (problem->what.empty()) {
+        return finish(RunOutcome::kFailed, RunState::kInterrupted, problem->message);
+      }
+      return Awaiting(*problem);
     }
   }
+  // A confirmation answers the question asked before this session; a later one (a restart
+  // mid-run) is asked again.
+  overrides_.confirm.clear();
   last_reference_at_.reset();  // every session starts with a fresh reference frame
 
   for (;;) {
@@ -630,6 +441,7 @@ RunReport RunSession::Run() {
       case StepKind::kStall:
         // Not the probe's fault: it stays pending and is probed again after recovery.
         if (!Recover(step)) {
+          if (ask_) return Awaiting(*ask_);
           return finish(
               RunOutcome::kFailed, RunState::kInterrupted,
               "could not recover from: " + step.message + ". Resume when the machine is back.");

@@ -15,8 +15,8 @@
 // What stops a run, and what it leaves:
 // - the probe's own failure (error:N on one of its lines, no frame in time): the probe is
 //   marked failed (retried until engine.max_attempts), the run goes on;
-// - a controller reset or a vanished port: reconnect, re-home, continue (at most
-//   engine.max_recoveries times per session);
+// - a controller reset or a vanished port: reconnect, re-establish the position (below),
+//   continue (at most engine.max_recoveries times per session);
 // - an alarm (limit, abort): the machine is left alone, the run becomes `interrupted` with the
 //   alarm's text; Execute() returns kFailed;
 // - RequestStop() (SIGTERM), RequestPause(), RequestCancel(): the current probe is finished,
@@ -26,7 +26,19 @@
 //   run stops (interrupted, kFailed) naming the line and the limit.
 // Nothing committed is ever lost or probed again. On resume, Execute() first re-presses up to
 // engine.recheck_probes committed probes and compares their impression centres with the stored
-// frames; if the sensor has moved it refuses to continue (kFailed, with the measured shift).
+// frames; if the sensor has moved it refuses to continue (kFailed, with the measured shift); if no
+// impression could be compared it stops and asks (kAwaiting "sensor") unless
+// engine.unverified_resume is "continue".
+//
+// Position (docs/running.md, "Faults"): at the start of every session and after every reset or
+// reconnect, the tool's position is known only through homing or a check. A controller that
+// lost its position (in alarm) is homed when machine.home is set and the tool was last sent
+// nowhere near the gel, otherwise the run stops and asks (kAwaiting "position"). A controller
+// that kept it must report the position the tool was last sent to (stored with the run);
+// otherwise the run stops and asks, never moves. Without homing, a first start asks too. Once
+// the position is known, a tool in or near the gel backs out along the probe's own axis before
+// anything else moves. $X is sent only with the user's confirmation, and said in the run's log.
+// A press frame without an impression is a probe failure (retried).
 //
 // Threads: Execute() blocks its caller; Start() runs it on the engine's own thread. The Request*()
 // calls and Progress() may come from any thread (RequestStop() is async-signal-safe). One run at a
@@ -49,7 +61,10 @@
 
 namespace gs360 {
 
-enum class RunOutcome { kDone, kPaused, kStopped, kCancelled, kFailed };
+// kAwaiting: the run stopped without moving because it cannot go on safely until the user has
+// checked something (RunRecord::awaiting says what, last_error why); resume with
+// SessionOverrides::confirm set to that.
+enum class RunOutcome { kDone, kPaused, kStopped, kCancelled, kFailed, kAwaiting };
 std::string_view ToString(RunOutcome outcome);
 
 struct RunProgress {
@@ -82,6 +97,10 @@ struct RunReport {
 struct SessionOverrides {
   std::string machine_uri;
   std::string camera_uri;
+  // What the user has checked, answering the run's RunRecord::awaiting: "position" (the
+  // controller's reported position is true, or with homing: the tool is clear, home it) or
+  // "sensor" (go on although the resume check could not verify the sensor's position).
+  std::string confirm;
 };
 
 class RunEngine {

@@ -427,6 +427,7 @@ GrblMachineInfo GrblClient::Handshake() {
     alarmed_ = false;
     reset_required_ = false;
     trusted_ = false;
+    stray_since_welcome_ = 0;
     last_alarm_.reset();
     in_flight_bytes_ = 0;
     rx_buffer_bytes_ = options_.default_rx_buffer_bytes;
@@ -544,6 +545,8 @@ void GrblClient::HandleLine(const std::string& text, Clock::time_point t) {
       case GrblMessageKind::kError: {
         if (in_flight_.empty()) {
           spdlog::warn("grbl: '{}' with no line in flight, ignored", msg.raw);
+          ++stats_.stray_replies;
+          ++stray_since_welcome_;
           break;
         }
         std::shared_ptr<LineState> line = in_flight_.front();
@@ -588,6 +591,7 @@ void GrblClient::HandleLine(const std::string& text, Clock::time_point t) {
         awaiting_welcome_ = false;
         info_.firmware = msg.name;
         info_.version = msg.version;
+        stray_since_welcome_ = 0;
         const std::size_t voided = in_flight_.size() + queue_.size();
         VoidAllLocked(GrblReplyKind::kReset, "controller reset (welcome line) before the reply");
         in_flight_bytes_ = 0;
@@ -1003,6 +1007,11 @@ GrblMachineInfo GrblClient::MachineInfo() const {
 bool GrblClient::PositionTrusted() const {
   std::lock_guard lock(mu_);
   return trusted_;
+}
+
+std::uint64_t GrblClient::StrayRepliesSinceWelcome() const {
+  std::lock_guard lock(mu_);
+  return stray_since_welcome_;
 }
 
 void GrblClient::MarkPositionTrusted() {

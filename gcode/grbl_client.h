@@ -168,6 +168,7 @@ struct GrblClientStats {
   std::uint64_t resets = 0;  // welcome lines seen
   std::uint64_t alarms = 0;
   std::uint64_t unknown_lines = 0;
+  std::uint64_t stray_replies = 0;  // ok / error:N with no line in flight
   std::size_t max_in_flight_bytes = 0;
 };
 
@@ -253,6 +254,10 @@ class GrblClient {
                                   std::chrono::milliseconds timeout);
 
   bool PositionTrusted() const;
+  // `ok` / `error:N` replies with no line in flight since the last welcome (or Connect()): the
+  // controller executed lines that the host had counted void (sent while it was restarting), so
+  // where it stands cannot be told from what was sent.
+  std::uint64_t StrayRepliesSinceWelcome() const;
   // For machines without homing whose operator vouches for the position.
   void MarkPositionTrusted();
   bool Alarmed() const;
@@ -314,6 +319,7 @@ class GrblClient {
   bool alarmed_ = false;
   bool reset_required_ = false;  // [MSG:Reset to continue]
   bool trusted_ = false;
+  std::uint64_t stray_since_welcome_ = 0;
   std::optional<int> last_alarm_;
   std::uint64_t next_sequence_ = 0;
   std::deque<std::shared_ptr<LineState>> queue_;      // accepted, not yet written

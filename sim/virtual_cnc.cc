@@ -19,6 +19,7 @@
 #include <sstream>
 #include <stdexcept>
 #include <thread>
+#include <utility>
 
 #include "sim/grbl_gcode.h"
 #include "sim/pty.h"
@@ -1092,6 +1093,7 @@ void VirtualCnc::Impl::McDwell(Lock& lk, double seconds) {
   if (state_ == GrblState::kCheck) return;
   Synchronize(lk);
   if (abort_) return;
+  if (std::exchange(reset_at_dwell_, false)) McReset();
   // delay_sec(seconds, DELAY_MODE_DWELL): ceil(seconds / 50 ms) steps of 50 ms, real-time
   // commands served between steps (a feed hold suspends the dwell).
   const long steps = static_cast<long>(std::ceil(seconds / kDwellTimeStep - 1e-9));

@@ -261,6 +261,9 @@ class VirtualCnc {
   // line being executed completes with its `ok` (a dwell is cut short), then the welcome; lines
   // still in the RX buffer are discarded and never answered. No effect while unpowered.
   void ResetNow();
+  // ResetNow() at the start of the next G4 dwell the controller executes (the planner just
+  // emptied, the tool at rest where the motion before it ended: at the bottom of a press).
+  void ResetDuringNextDwell();
   // The controller sends `bytes` to the host as they are (paced, and subject to the CncToHost
   // faults, like any output). Without reset_on_open, bytes sent while no host has the port open
   // wait in the pty and are the first thing the next host reads (stale "ok", "error:9" or

@@ -2,6 +2,8 @@
 // raw bytes on the line. They reuse the power-up (PowerOff/PowerOn, as Unplug(power_loss) and
 // reset_on_open do) and the 0x18 path (McReset) of virtual_cnc.cc.
 
+#include <unistd.h>
+
 #include <mutex>
 #include <string>
 
@@ -16,6 +18,13 @@ namespace gs360 {
 void VirtualCnc::Impl::Reboot() {
   PowerOff();
   tx_.clear();
+  // Bytes the host wrote that the UART had not taken yet (in the USB bridge; here the pty) reach
+  // the restarting MCU's bootloader, which eats them: a real board never executes them.
+  if (plugged_ && pty_.master_fd() >= 0) {
+    char buf[256];
+    while (::read(pty_.master_fd(), buf, sizeof(buf)) > 0) {
+    }
+  }
   PowerOn();
 }
 
@@ -48,6 +57,9 @@ void VirtualCnc::PowerCycle() {
 }
 void VirtualCnc::ResetNow() {
   impl_->ResetNow();
+}
+void VirtualCnc::ResetDuringNextDwell() {
+  impl_->ResetDuringNextDwell();
 }
 void VirtualCnc::SendRaw(const std::string& bytes) {
   impl_->SendRaw(bytes);

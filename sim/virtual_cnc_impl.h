@@ -214,6 +214,10 @@ class VirtualCnc::Impl {
   // Board-side faults (virtual_cnc_faults.cc).
   void PowerCycle();
   void ResetNow();
+  void ResetDuringNextDwell() {
+    std::lock_guard<std::mutex> lk(mu_);
+    reset_at_dwell_ = true;
+  }
   void SendRaw(const std::string& bytes);
   std::size_t PendingOutputBytes() const;
 
@@ -374,6 +378,7 @@ class VirtualCnc::Impl {
   LinkFaults to_cnc_, to_host_;
   Clock::time_point stall_until_{};
   std::optional<ArmedAlarm> armed_alarm_;
+  bool reset_at_dwell_ = false;  // ResetDuringNextDwell()
   bool lose_position_ = false;
 
   // Dialect state.

@@ -8,6 +8,8 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <locale>
+#include <sstream>
 #include <stdexcept>
 #include <system_error>
 #include <unordered_map>
@@ -490,7 +492,7 @@ class Transaction {
 
 #define GS360_RUN_COLUMNS                                                                      \
   "id, name, config_json, mesh_hash, state, created_at, started_at, updated_at, finished_at, " \
-  "active_s, running_since, last_error"
+  "active_s, running_since, last_error, awaiting, commanded_path"
 
 RunRecord ReadRun(const Stmt& s) {
   RunRecord r;
@@ -506,6 +508,15 @@ RunRecord ReadRun(const Stmt& s) {
   r.active_s = s.GetReal(9);
   r.running_since = s.GetOptReal(10);
   r.last_error = s.GetText(11);
+  r.awaiting = s.GetText(12);
+  // "x y z;x y z;...": written by SetCommandedPath only.
+  std::istringstream path(s.GetText(13));
+  for (std::string point; std::getline(path, point, ';');) {
+    Eigen::Vector3d p;
+    std::istringstream xyz(point);
+    xyz.imbue(std::locale::classic());
+    if (xyz >> p.x() >> p.y() >> p.z()) r.commanded_path.push_back(p);
+  }
   return r;
 }
 
@@ -921,7 +932,7 @@ void RunDatabase::SetRunState(std::int64_t run_id, RunState state) {
       .Int(7, run_id)
       .Run();
   if (state == RunState::kRunning) {
-    Stmt clear = c.Prepare("UPDATE runs SET last_error = '' WHERE id = ?");
+    Stmt clear = c.Prepare("UPDATE runs SET last_error = '', awaiting = '' WHERE id = ?");
     clear.Int(1, run_id).Run();
   }
   c.AddEvent(
@@ -939,6 +950,33 @@ void RunDatabase::SetRunError(std::int64_t run_id, std::string_view message) {
   Stmt s = c.Prepare("UPDATE runs SET last_error = ?, updated_at = ? WHERE id = ?");
   s.Text(1, message).Real(2, c.Now()).Int(3, run_id).Run();
   c.AddEvent(run_id, EventLevel::kError, message, "");
+  tx.Commit();
+}
+
+void RunDatabase::SetRunAwaiting(std::int64_t run_id, std::string_view what,
+                                 std::string_view message) {
+  const Impl& c = *impl_;
+  Transaction tx(c, Transaction::kWrite);
+  c.RequireRun(run_id);
+  Stmt s = c.Prepare("UPDATE runs SET last_error = ?, awaiting = ?, updated_at = ? WHERE id = ?");
+  s.Text(1, message).Text(2, what).Real(3, c.Now()).Int(4, run_id).Run();
+  c.AddEvent(run_id, EventLevel::kError, message, "");
+  tx.Commit();
+}
+
+void RunDatabase::SetCommandedPath(std::int64_t run_id, std::span<const Eigen::Vector3d> path) {
+  std::ostringstream text;
+  text.imbue(std::locale::classic());
+  text.precision(17);
+  for (const Eigen::Vector3d& p : path) {
+    RequireFinite(p, "SetCommandedPath: a point");
+    text << p.x() << ' ' << p.y() << ' ' << p.z() << ';';
+  }
+  const Impl& c = *impl_;
+  Transaction tx(c, Transaction::kWrite);
+  c.RequireRun(run_id);
+  Stmt s = c.Prepare("UPDATE runs SET commanded_path = ? WHERE id = ?");
+  s.Text(1, text.str()).Int(2, run_id).Run();
   tx.Commit();
 }
 

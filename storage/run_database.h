@@ -105,6 +105,12 @@ struct RunRecord {
   // Why the run last stopped short (an alarm, a set-up that failed); cleared when it next enters
   // kRunning. Empty if none.
   std::string last_error;
+  // What the run waits for the user to confirm before it goes on ("position", "sensor"), with
+  // the reason in last_error; cleared when it next enters kRunning. Empty if nothing.
+  std::string awaiting;
+  // The last motion it sent: where it started, then each target (machine frame, MPos, mm);
+  // empty before the first.
+  std::vector<Eigen::Vector3d> commanded_path;
 };
 
 // One planned probe, as the planner emits it.
@@ -240,6 +246,11 @@ class RunDatabase {
   // Records why the run stopped short (RunRecord::last_error) with an error event, in one
   // transaction. Throws kNotFound.
   void SetRunError(std::int64_t run_id, std::string_view message);
+  // As SetRunError, and the run waits for the user to confirm `what` (RunRecord::awaiting).
+  void SetRunAwaiting(std::int64_t run_id, std::string_view what, std::string_view message);
+  // The last motion the run sent (RunRecord::commanded_path). Throws std::invalid_argument for a
+  // non-finite position, kNotFound.
+  void SetCommandedPath(std::int64_t run_id, std::span<const Eigen::Vector3d> path);
   // Removes the run and everything of it (probes, frames, events, artifacts; its models stay,
   // detached). Its id is never given to another run. Throws kNotFound, kInvalidState while it is
   // kRunning.

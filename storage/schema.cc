@@ -106,10 +106,14 @@ CREATE TABLE models (
 )sql";
 
 // The reason the run last stopped short (an alarm, a failed set-up), for the API's last_error;
-// and deleted runs kept as a tombstone row, so that a run id is never given out twice.
+// what it waits for the user to confirm before it goes on; the path of the last motion it sent
+// (the controller must stand on it when a run resumes); and deleted runs kept as a tombstone
+// row, so that a run id is never given out twice.
 constexpr std::string_view kVersion3 = R"sql(
 ALTER TABLE runs ADD COLUMN last_error TEXT NOT NULL DEFAULT '';
 ALTER TABLE runs ADD COLUMN deleted_at REAL;
+ALTER TABLE runs ADD COLUMN awaiting TEXT NOT NULL DEFAULT '';
+ALTER TABLE runs ADD COLUMN commanded_path TEXT NOT NULL DEFAULT '';
 )sql";
 
 constexpr std::array<SchemaMigration, kSchemaVersion> kMigrations = {{

@@ -272,7 +272,8 @@
   // shown (one object) never disagree and an answer that arrives late does not go back in time.
   const LIVE_FIELDS = new Set(['state', 'probes_done', 'probes_total', 'probes_failed',
     'probes_skipped', 'probes_pending', 'elapsed_s', 'eta_s', 'rate_per_h', 'phase',
-    'machine_state', 'machine_position', 'last_error', 'updated_at', 'started_at', 'finished_at']);
+    'machine_state', 'machine_position', 'last_error', 'awaiting', 'updated_at', 'started_at',
+    'finished_at']);
 
   function mergeRun(r, issued, fromList) {
     let run = state.runs.get(r.id);
@@ -562,7 +563,10 @@
     $('run-state').dataset.state = r.state;
     renderProgress(r);
     const err = r.last_error;
-    setText('run-last-error', err ? `Last error: ${err}` : '');
+    // A run that waits for the user says what to check; the start / resume button answers it.
+    setText('run-last-error', !err ? ''
+      : r.awaiting ? `Waiting for you to confirm the ${r.awaiting}: ${err}` : `Last error: ${err}`);
+    $('run-last-error').dataset.awaiting = r.awaiting || '';
     show('run-last-error', !!err);
     const times = [];
     if (r.created_at) times.push(`created ${fmtTime(r.created_at)}`);
@@ -637,7 +641,12 @@
       delete: !!r && !active && !calibrating,
     };
     for (const b of $('actions').querySelectorAll('button[data-action]')) {
-      b.disabled = !enabled[b.dataset.action];
+      const action = b.dataset.action;
+      b.disabled = !enabled[action];
+      if (!b.dataset.label) b.dataset.label = b.textContent;
+      const asks = !!(r && r.awaiting) && (action === 'start' || action === 'resume');
+      b.textContent = asks ? `Confirm ${r.awaiting} & ${action}` : b.dataset.label;
+      b.classList.toggle('asks', asks && !b.disabled);
     }
   }
 
@@ -648,7 +657,18 @@
       'parked and the run ends; its data is kept.',
     delete: (r) => `Delete run #${r.id} “${r.name}”? Its probes, frames, log and calibration ` +
       'are removed for good.',
+    start: (r) => confirmAwaiting(r, 'start'),
+    resume: (r) => confirmAwaiting(r, 'resume'),
   };
+
+  // Null when the run waits for nothing: start / resume then need no confirmation.
+  function confirmAwaiting(r, action) {
+    if (!r.awaiting) return null;
+    const what = r.awaiting === 'position'
+      ? 'the tool is clear of the sensor (with homing) or the controller\'s position is true'
+      : 'the sensor sits exactly as it did';
+    return `${r.last_error || ''}\n\nHave you checked that ${what}? Run #${r.id} will ${action}.`;
+  }
 
   function confirmAction(text) {
     const dialog = $('confirm');
@@ -667,7 +687,8 @@
     if (!button || button.disabled || !state.run) return;
     const action = button.dataset.action;
     const run = state.run;
-    if (CONFIRM[action] && !(await confirmAction(CONFIRM[action](run)))) return;
+    const question = CONFIRM[action] ? CONFIRM[action](run) : null;
+    if (question && !(await confirmAction(question))) return;
     button.disabled = true;
     try {
       if (action === 'delete') {
@@ -681,7 +702,9 @@
         renderRun();
         autoSelect();
       } else {
-        const res = await api(`/runs/${run.id}/${action}`, { method: 'POST', body: {} });
+        const answers = run.awaiting && (action === 'start' || action === 'resume');
+        const body = answers ? { confirm: run.awaiting } : {};
+        const res = await api(`/runs/${run.id}/${action}`, { method: 'POST', body });
         notice(`Run #${run.id}: ${(res && res.message) || action}`, 'info');
       }
     } catch (e) {

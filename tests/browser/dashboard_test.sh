@@ -10,7 +10,9 @@
 #   4. screenshots at 1280x900 and 390x844 (GS360_UPDATE_SCREENSHOT=1 copies the first to
 #      docs/images/dashboard.png; otherwise the source tree is left alone);
 #   5. the run paused through the API: the API, then the dashboard, say paused;
-#   6. gs360d stopped with SIGTERM: it exits 0.
+#   6. gs360d stopped with SIGTERM: it exits 0;
+#   7. gs360d again, with `home = false`: a new run asks to confirm its position before it
+#      moves; the page says so and its start button (live_check.py --confirm) answers it.
 # The dumps and screenshots open /#run=ID&live=poll: Chromium's --virtual-time-budget waits for
 # the network to be idle, which an open event stream never is, so that page polls the API instead.
 # Takes some 20 s.
@@ -357,4 +359,37 @@ stop "$DAEMON_PID" || rc=$?
 DAEMON_PID=
 [ "$rc" -eq 0 ] || fail "gs360d exited with status $rc after SIGTERM (expected 0)"
 log "gs360d stopped by SIGTERM with status 0"
+
+# ---- a run that waits for the user ---------------------------------------------------------------
+
+sed 's/^\[machine\]$/[machine]\nhome = false/' "$TMP/gs360d.toml" > "$TMP/gs360d-nohome.toml"
+rm -f "$TMP/data/daemon.json"
+(cd "$TMP" && exec "$GS360D" --config "$TMP/gs360d-nohome.toml") > "$TMP/gs360d.out" \
+  2> "$TMP/gs360d.err" &
+DAEMON_PID=$!
+PIDS+=("$DAEMON_PID")
+URL=
+wait_until 30 "gs360d (home = false) to answer" daemon_ready
+api_post runs '{"name":"no-homing","probes":200}' 201 > "$TMP/created.json"
+RUN=$(json_num id < "$TMP/created.json")
+api_post "runs/$RUN/start" '{}' 202 > /dev/null
+asks() { run_view && [ "$(json_str awaiting < "$TMP/run_view.json")" = position ]; }
+wait_until 60 "run $RUN to wait for its position to be confirmed" asks
+log "API: run $RUN is $(run_state), awaiting $(json_str awaiting < "$TMP/run_view.json")"
+if command -v python3 > /dev/null; then
+  profile=$(mktemp -d "$TMP/profile.XXXXXX")
+  browser 90 "$TMP/confirm_check.out" python3 "$HERE/live_check.py" --confirm "$CHROMIUM" \
+    "$URL/#run=$RUN" "$profile" "$TMP/chromium.err"
+  sed 's/^/    /' "$TMP/confirm_check.out"
+  [ "$RC" -eq 0 ] || fail "the confirmation through the page failed (status $RC)"
+  moving() { run_view && [ "$(run_state)" = running ] && [ "$(run_num probes_done)" -ge 1 ]; }
+  wait_until 60 "run $RUN to capture probes once confirmed" moving
+  log "API: run $RUN running after the confirmation, $(run_num probes_done) probes done"
+else
+  log "SKIPPED the confirmation through the page: python3 is not installed"
+fi
+rc=0
+stop "$DAEMON_PID" || rc=$?
+DAEMON_PID=
+[ "$rc" -eq 0 ] || fail "gs360d (home = false) exited with status $rc after SIGTERM"
 log "PASS in $((SECONDS - START)) s"

@@ -3,6 +3,7 @@
 DevTools protocol on a pipe (--remote-debugging-pipe: no port, no extra package).
 
   live_check.py CHROMIUM PAGE_URL PROFILE_DIR CHROMIUM_LOG
+  live_check.py --confirm CHROMIUM PAGE_URL PROFILE_DIR CHROMIUM_LOG
 
 1. Opens PAGE_URL (the dashboard with a running run selected, streaming: no live=poll) at
    1280x900 and waits for the header to say "live" (the EventSource is open) and for
@@ -11,6 +12,10 @@ DevTools protocol on a pipe (--remote-debugging-pipe: no port, no extra package)
    polling fallback, which "live" rules out) can change it.
 3. Narrows the viewport to a phone's (390x844): nothing may be wider than the screen
    (no horizontal scrolling) and the runs list must sit above the run (one column).
+
+With --confirm, PAGE_URL shows a run that waits for the user to confirm its position: the page
+must say so, its start button must offer to confirm; the check clicks it, answers the dialog with
+yes, and waits for the run to leave `created` (the daemon took the confirmation).
 
 Prints what it compares. Exit status 0: passed; 1: a check failed; 2: Chromium or the protocol
 failed. Python standard library only.
@@ -166,13 +171,60 @@ def wait_for(chrome, what, test, timeout):
     sys.exit(1)
 
 
+ASKS = ('(() => { const e = (id) => document.getElementById(id); '
+        'const b = document.querySelector("button[data-action=start]"); '
+        'const err = e("run-last-error"); const st = e("run-state"); '
+        'return {error: !err || err.hidden ? "" : err.textContent, '
+        'state: st ? st.textContent : "", button: b ? b.textContent : null, '
+        'enabled: b ? !b.disabled : false}; })()')
+
+
+def confirm_check(chrome, url):
+    chrome.open(url, 1280, 900)
+    deadline = time.monotonic() + 30
+    seen = None
+    while time.monotonic() < deadline:
+        seen = chrome.eval(ASKS)
+        if 'Waiting for you to confirm the position' in seen['error'] and seen['enabled']:
+            break
+        time.sleep(0.25)
+    else:
+        log(f'FAIL: the page does not say the run waits for a confirmation: {seen}')
+        return 1
+    log(f'the page asks: "{seen["error"][:90]}..."; button: "{seen["button"]}"')
+    if seen['button'] != 'Confirm position & start':
+        log(f'FAIL: the start button says "{seen["button"]}"')
+        return 1
+    chrome.eval('document.querySelector("button[data-action=start]").click()')
+    time.sleep(0.5)
+    question = chrome.eval('document.getElementById("confirm").open ? '
+                           'document.getElementById("confirm-text").textContent : null')
+    if not question or 'Have you checked' not in question:
+        log(f'FAIL: no confirmation dialog after the click: {question}')
+        return 1
+    chrome.eval('document.getElementById("confirm-yes").click()')
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        seen = chrome.eval(ASKS)
+        if seen['state'] not in ('created', '') and 'Waiting for you' not in seen['error']:
+            log(f'confirmed in the page: the run is {seen["state"]}')
+            return 0
+        time.sleep(0.25)
+    log(f'FAIL: the run did not start after the confirmation: {seen}')
+    return 1
+
+
 def main():
-    if len(sys.argv) != 5:
+    confirm = len(sys.argv) == 6 and sys.argv[1] == '--confirm'
+    args = sys.argv[2:] if confirm else sys.argv[1:]
+    if len(args) != 4:
         print(__doc__, file=sys.stderr)
         return 2
-    binary, url, profile, chrome_log = sys.argv[1:]
+    binary, url, profile, chrome_log = args
     chrome = Chromium(binary, profile, chrome_log)
     try:
+        if confirm:
+            return confirm_check(chrome, url)
         chrome.open(url, 1280, 900)
         first = wait_for(chrome, 'the event stream ("live") and a progress number',
                          lambda s: s['live'] == 'live' and (s['done'] or '').isdigit()

@@ -155,7 +155,11 @@ TEST_CASE("api: plan, start, pause and resume a run, and two resumes at once get
   }
   CHECK(std::multiset<int>(statuses.begin(), statuses.end()) == std::multiset<int>{202, 409});
   const Json done = WaitRun(c, id, [](const Json& run) { return run["state"] == "done"; });
-  CHECK(done["probes_done"] == done["probes_total"]);
+  // Every probe pressed; the few the true camera cannot see (behind a fin's edge) fail for want
+  // of an impression.
+  CHECK(done["probes_done"].get<int>() + done["probes_failed"].get<int>() ==
+        done["probes_total"].get<int>());
+  CHECK(done["probes_failed"].get<int>() <= 2);
   CHECK(done["probes_done"].get<int>() > done_at_pause);
   CHECK(done["last_error"].is_null());
 
@@ -433,12 +437,24 @@ TEST_CASE("api: an unplugged machine interrupts the run with last_error, and res
              Catch::Contains("did not come back") || Catch::Contains("could not recover"));
   f.rig->cnc().Replug();  // under another /dev/pts name; the configured symlink follows it
   REQUIRE(PostJson(c, "/api/v1/runs/1/resume", Json::object())->status == 202);
-  const Json done = WaitRun(c, 1, [](const Json& run) {
+  const auto ended = [](const Json& run) {
     return run["state"] == "done" || run["state"] == "interrupted";
-  });
+  };
+  Json done = WaitRun(c, 1, ended);
+  // The board lost power with the cable: if the tool may have been in the gel, the run asks
+  // before homing; the user checks and confirms.
+  if (done["awaiting"] == "position") {
+    CHECK_THAT(done["last_error"].get<std::string>(), Catch::Contains("in or near the gel"));
+    // Confirming something else than what it waits for is refused.
+    CHECK(PostJson(c, "/api/v1/runs/1/resume", {{"confirm", "sensor"}})->status == 409);
+    REQUIRE(PostJson(c, "/api/v1/runs/1/resume", {{"confirm", "position"}})->status == 202);
+    done = WaitRun(c, 1, ended);
+  }
   CHECK(done["state"] == "done");
   CHECK(done["last_error"].is_null());  // cleared when it ran again
-  CHECK(done["probes_done"] == done["probes_total"]);
+  CHECK(done["awaiting"].is_null());
+  CHECK(done["probes_done"].get<int>() + done["probes_failed"].get<int>() ==
+        done["probes_total"].get<int>());
 }
 
 TEST_CASE("api: a machine alarm stops the run, says why, and nothing unlocks it",

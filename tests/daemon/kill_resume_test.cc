@@ -93,14 +93,19 @@ TEST_CASE(
 
   RunDatabase db = ReadOnly(db_path);
   const ProbeCounts counts = db.CountProbes(1);
-  CHECK(counts.captured == total);
-  CHECK(counts.failed == 0);
+  // Every probe was pressed; the few the true camera cannot see (a fin's edge hides them) failed
+  // for want of an impression, and nothing else failed.
+  CHECK(counts.captured + counts.failed == total);
+  CHECK(counts.failed <= 8);
+  for (const ProbeRecord& p : db.ListProbes(1, ProbeState::kFailed)) {
+    CHECK_THAT(p.last_error, Catch::Contains("no impression"));
+  }
   const auto frames = db.ListFrames(1, FrameKind::kPress);
-  CHECK(static_cast<std::int64_t>(frames.size()) == total);
+  CHECK(static_cast<std::int64_t>(frames.size()) == counts.captured);
   std::set<std::int64_t> probes;
   for (const auto& fr : frames) CHECK(probes.insert(*fr.probe_id).second);
   const cli::CaptureTruth truth = cli::CheckCapturesAgainstTruth(*f.rig, db, 1);
-  CHECK(truth.frames == total);
+  CHECK(truth.frames == counts.captured);
   CHECK(truth.off_target == 0);
   CHECK(truth.unverified == 0);
   CHECK(truth.max_error_mm < 0.005);

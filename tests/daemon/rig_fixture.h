@@ -4,7 +4,9 @@
 #include <unistd.h>
 
 #include <atomic>
+#include <cstdlib>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <string>
 
@@ -32,20 +34,25 @@ struct RigFixture {
 
   // `candidates`: points sampled (about half are kept on the default cylinder); `time_scale` 0 is
   // instant motion.
-  RigFixture(const std::string& name, int candidates, double time_scale, bool symlink = false) {
+  // `tweak` adjusts the virtual rig's options (firmware, settings) before it is built.
+  RigFixture(const std::string& name, int candidates, double time_scale, bool symlink = false,
+             const std::function<void(VirtualRigOptions&)>& tweak = {}) {
     dir = FreshDir(name);
     db = dir / "run.db";
     config.name = name;
     config.plan.probe_count = candidates;
     config.plan.reference_every = 25;
-    cli::VirtualSetup setup = cli::MakeVirtualSetup(config, time_scale, 7, dir / "camera.sock",
-                                                    symlink ? (dir / "ttyCNC").string() : "");
+    cli::VirtualSetup setup =
+        cli::MakeVirtualSetup(config, time_scale, 7, dir / "camera.sock",
+                              symlink ? (dir / "ttyCNC").string() : "", tweak);
     config = setup.config;
     rig = std::move(setup.rig);
     config.engine.reconnect_timeout_s = 10.0;
   }
   ~RigFixture() {
     rig.reset();
+    // GS360_KEEP_TEST_DIRS=1 keeps the database and logs for a look afterwards.
+    if (const char* keep = std::getenv("GS360_KEEP_TEST_DIRS"); keep && *keep == '1') return;
     std::error_code ec;
     std::filesystem::remove_all(dir, ec);
   }

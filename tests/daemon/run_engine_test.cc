@@ -118,10 +118,19 @@ TEST_CASE("resume refuses to continue when the sensor moved", "[daemon][run]") {
   CHECK(RunDatabase(f.db).CountProbes(run_id).captured == before);
   CHECK(RunDatabase(f.db).GetRun(run_id)->state == RunState::kInterrupted);
 
-  // Put back where it was, the same run resumes and finishes.
-  const RunReport ok = engine.Execute(run_id);
+  // Put back where it was, the same run resumes and finishes. The original controller stands
+  // where the first session left it, not where the second sent its tool: the user confirms.
+  const RunReport asked = engine.Execute(run_id);
+  CHECK(asked.outcome == RunOutcome::kAwaiting);
+  CHECK_THAT(asked.message, Catch::Contains("last sent to"));
+  CHECK(RunDatabase(f.db).GetRun(run_id)->awaiting == "position");
+  SessionOverrides confirm;
+  confirm.confirm = "position";
+  const RunReport ok = engine.Execute(run_id, confirm);
   CHECK(ok.outcome == RunOutcome::kDone);
   CheckCommitted(f, run_id);
+  std::error_code ec;
+  std::filesystem::remove_all(moved_dir, ec);
 }
 
 // ---- faults: the run survives or stops cleanly with a message; nothing committed is lost ----
@@ -150,9 +159,13 @@ FaultRun RunWithFault(RigFixture& f, std::int64_t after, const std::function<voi
   CHECK(out.first.counts.captured >= out.committed_before_fault);
   CheckCommitted(f, run_id);
   out.final = out.first;
-  if (out.first.outcome != RunOutcome::kDone) {
-    CHECK_FALSE(out.first.message.empty());
-    out.final = engine.Execute(run_id);
+  // A run that stops is resumed, and one that asks is resumed as a user would, having checked
+  // what it asked about (a failed run may ask on its resume).
+  for (int attempt = 0; attempt < 3 && out.final.outcome != RunOutcome::kDone; ++attempt) {
+    CHECK_FALSE(out.final.message.empty());
+    SessionOverrides overrides;
+    overrides.confirm = RunDatabase(f.db).GetRun(run_id)->awaiting;
+    out.final = engine.Execute(run_id, overrides);
     CheckCommitted(f, run_id);
   }
   CHECK(out.final.outcome == RunOutcome::kDone);
@@ -191,7 +204,13 @@ TEST_CASE("fault: USB unplug, the controller comes back under another name", "[d
   unplug.replug_after = std::chrono::milliseconds(500);
   const FaultRun r = RunWithFault(f, 4, [&] { f.rig->cnc().Unplug(unplug); });
   CHECK(f.rig->PtyPath() != before);
-  CHECK(r.first.outcome == RunOutcome::kDone);  // reconnected, re-homed, carried on
+  // Reconnected; the board lost power with the cable, so its position is lost: re-homed and
+  // carried on when the tool was clear of the gel, or stopped to ask (without moving) when it
+  // may have been in it.
+  CHECK((r.first.outcome == RunOutcome::kDone || r.first.outcome == RunOutcome::kAwaiting));
+  if (r.first.outcome == RunOutcome::kAwaiting) {
+    CHECK_THAT(r.first.message, Catch::Contains("in or near the gel"));
+  }
   CHECK(r.first.recoveries >= 1);
 }
 

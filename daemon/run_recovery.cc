@@ -1,0 +1,395 @@
+// The run engine's session: connecting, knowing where the tool is, getting out of the gel,
+// recovering from resets and disconnects, checking the sensor on resume, parking
+// (docs/running.md, "Faults").
+
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <limits>
+
+#include <spdlog/spdlog.h>
+
+#include "capture/impression.h"
+#include "daemon/run_session.h"
+
+namespace gs360 {
+
+using session::Ask;
+using session::Fmt3;
+using session::Ms;
+using session::Press;
+using session::Step;
+using session::StepKind;
+
+void RunSession::ConnectMachine() {
+  Publish("connecting");
+  TransportOptions transport;
+  transport.baud = config_.machine.baud;
+  client_ = GrblClient::ForUri(config_.machine.uri, transport);
+  const GrblMachineInfo info = client_->Connect();
+  Event(EventLevel::kInfo, "connected to " + info.firmware + " " + info.version + " at " +
+                               config_.machine.uri + " (RX buffer " +
+                               std::to_string(info.rx_buffer_bytes) + " bytes)");
+  CompareFirmware(info);
+}
+
+void RunSession::CompareFirmware(const GrblMachineInfo& info) {
+  const MachineSettings actual = MachineSettings::FromGrblSettings(info.settings);
+  const MachineSettings& planned = config_.plan.machine;
+  // Travel: every planned position must lie inside the controller's soft limits.
+  if (info.settings.count(130) && info.settings.count(131) && info.settings.count(132)) {
+    try {
+      CheckTravel(plan_, actual, 0.0);
+    } catch (const std::exception& e) {
+      throw std::runtime_error(
+          "the controller's travel ($130-$132 = " + FormatFixed(actual.max_travel_mm.x(), 1) +
+          ", " + FormatFixed(actual.max_travel_mm.y(), 1) + ", " +
+          FormatFixed(actual.max_travel_mm.z(), 1) + " mm) does not reach the plan: " + e.what() +
+          ". Fix the controller's $13x or [plan.machine] max_travel_mm and the rig's "
+          "mount in gs360d.toml.");
+    }
+  }
+  // Rates and accelerations: the plan's time estimate assumed [plan.machine]; a controller with
+  // others makes the ETA wrong (not the motion: GRBL enforces its own limits).
+  const auto differs = [](const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
+    return (a - b).cwiseAbs().maxCoeff() > 1e-6;
+  };
+  if (differs(actual.max_rate_mm_per_min, planned.max_rate_mm_per_min) ||
+      differs(actual.acceleration_mm_per_s2, planned.acceleration_mm_per_s2)) {
+    Event(EventLevel::kWarning,
+          "the controller's rates ($110-$112 = " + Fmt3(actual.max_rate_mm_per_min) +
+              " mm/min) or accelerations ($120-$122 = " + Fmt3(actual.acceleration_mm_per_s2) +
+              " mm/s^2) differ from [plan.machine] (" + Fmt3(planned.max_rate_mm_per_min) + ", " +
+              Fmt3(planned.acceleration_mm_per_s2) + "): the ETA will be off");
+  }
+}
+
+void RunSession::Home() {
+  Publish("homing");
+  const GrblReply reply = client_->Home();
+  if (!reply.Ok()) {
+    throw std::runtime_error("homing failed at " + config_.machine.uri + ": " + reply.Describe());
+  }
+}
+
+std::optional<Ask> RunSession::EstablishPosition(const std::vector<Eigen::Vector3d>& sent) {
+  Publish("verifying");
+  const bool confirmed = overrides_.confirm == "position";
+  const std::string resume =
+      "`gs360 run resume " + std::to_string(run_id_) + " --confirm position`";
+  // Lines sent while it restarted may run after its welcome: let them finish before looking.
+  if (!client_->Alarmed()) client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
+  const std::uint64_t stray = client_->StrayRepliesSinceWelcome();
+  if (client_->Alarmed() || stray > 0) {
+    const auto alarm = client_->LastAlarm();
+    const std::string why =
+        client_->Alarmed()
+            ? "the controller is in alarm (" +
+                  (alarm ? "ALARM:" + std::to_string(*alarm) + ", " + GrblAlarmText(*alarm)
+                         : std::string("it restarted")) +
+                  "): its position is lost"
+            : "the controller restarted and then executed " + std::to_string(stray) +
+                  " line(s) sent while it did: where it stands cannot be checked against the "
+                  "motion sent";
+    if (config_.machine.home) {
+      // It stopped somewhere on the last motion sent: home only if all of it is clear.
+      if (!confirmed && !PathClearOfGel(sent)) {
+        return Ask{"position", why +
+                                   ", and the ball may be in or near the gel (it was last sent "
+                                   "to " +
+                                   Fmt3(sent.back()) +
+                                   "): homing moves Z first and "
+                                   "would drag it. Nothing was moved. Move the tool clear of "
+                                   "the sensor by hand, then " +
+                                   resume + " (it homes)."};
+      }
+      Home();
+    } else {
+      if (!confirmed) {
+        return Ask{"position", why +
+                                   " and homing is off, so where the tool is cannot be known. "
+                                   "Nothing was moved. Make the controller's position true "
+                                   "(or move the tool to where MPos says it is), then " +
+                                   resume + "."};
+      }
+      if (client_->Alarmed()) Unlock();
+      client_->MarkPositionTrusted();
+    }
+  } else {
+    const auto status = client_->QueryStatus(std::chrono::seconds(5));
+    if (!status || !status->machine_position) {
+      throw std::runtime_error("the controller at " + config_.machine.uri +
+                               " reports no machine position");
+    }
+    const Eigen::Vector3d reported = *status->machine_position;
+    // Lines are executed whole and in order: a controller that kept its position stands where
+    // one of the last motion's lines took it (or where it started).
+    double nearest = std::numeric_limits<double>::infinity();
+    for (const Eigen::Vector3d& p : sent) nearest = std::min(nearest, (reported - p).norm());
+    if (!confirmed && !sent.empty() && nearest > config_.machine.verify_tolerance_mm) {
+      return Ask{"position",
+                 "the controller reports MPos " + Fmt3(reported) +
+                     " but the tool was last sent "
+                     "to " +
+                     Fmt3(sent.back()) + " (" + FormatFixed(nearest, 3) +
+                     " mm from any "
+                     "point of that motion): it may have restarted or been moved by hand. Nothing "
+                     "was moved. Check the machine, then " +
+                     resume +
+                     " to take its position as "
+                     "true" +
+                     (config_.machine.home ? " (it homes)." : ".")};
+    }
+    if (!confirmed && sent.empty() && !config_.machine.home) {
+      return Ask{"position", "homing is off: check that the controller's position (MPos " +
+                                 Fmt3(reported) + ") is where the tool really is, then " + resume +
+                                 "."};
+    }
+    if (!sent.empty() && !confirmed) {
+      Event(EventLevel::kInfo,
+            "position verified: the controller stands where the last motion "
+            "sent took it, " +
+                Fmt3(reported));
+    }
+    client_->MarkPositionTrusted();
+    position_ = reported;
+    BackOutOfGel();
+    if (config_.machine.home) Home();
+  }
+  for (const std::string& line : ProgramPreamble()) {
+    const GrblReply r = client_->WaitForOk(client_->Send(line), std::chrono::seconds(10));
+    if (!r.Ok()) throw std::runtime_error("preamble '" + line + "' failed: " + r.Describe());
+  }
+  const auto status = client_->QueryStatus(std::chrono::seconds(5));
+  if (!status || !status->machine_position) {
+    throw std::runtime_error("the controller at " + config_.machine.uri +
+                             " reports no machine position");
+  }
+  position_ = *status->machine_position;
+  last_path_ = {position_};
+  at_retract_of_ = (position_ - plan_.start_machine).norm() < 1e-3 ? -1 : -2;
+  return std::nullopt;
+}
+
+void RunSession::Unlock() {
+  Event(EventLevel::kWarning,
+        "unlocking the controller ($X): its position was confirmed by the user");
+  const GrblReply unlock = client_->Unlock();
+  if (unlock.Ok()) return;
+  // grblHAL refuses $X while its homing lock holds (error:46): only homing clears it.
+  throw std::runtime_error("unlock ($X) failed: " + unlock.Describe() +
+                           (unlock.error_code == 46
+                                ? ". This controller must be homed before it moves: set home = "
+                                  "true in [machine] of gs360d.toml (or turn its homing lock "
+                                  "off, $22), then resume"
+                                : ""));
+}
+
+bool RunSession::PathClearOfGel(const std::vector<Eigen::Vector3d>& path) const {
+  if (path.empty()) return true;
+  const double gap = 0.5 * config_.plan.travel_clearance;
+  if (path.size() == 1) return travel_->ToolGaps(travel_->BallFromMachine(path[0])).Min() >= gap;
+  for (std::size_t i = 1; i < path.size(); ++i) {
+    if (!travel_->SegmentClear(travel_->BallFromMachine(path[i - 1]),
+                               travel_->BallFromMachine(path[i]), gap)) {
+      return false;
+    }
+  }
+  return true;
+}
+
+void RunSession::BackOutOfGel() {
+  const Eigen::Vector3d ball = travel_->BallFromMachine(position_);
+  if (travel_->ToolGaps(ball).Min() >= 0.5 * config_.plan.travel_clearance) return;
+  // The probe whose press axis runs through the ball: straight out along it to its approach.
+  Eigen::Vector3d target;
+  std::string along;
+  double best = 0.25;  // mm from the axis
+  for (const PlannedProbe& p : plan_.probes) {
+    const Eigen::Vector3d a = travel_->BallFromMachine(p.press_machine);
+    const Eigen::Vector3d b = travel_->BallFromMachine(p.approach_machine);
+    const double t =
+        std::clamp((ball - a).dot(b - a) / std::max(1e-12, (b - a).squaredNorm()), 0.0, 1.0);
+    const double d = (ball - (a + t * (b - a))).norm();
+    if (d < best) {
+      best = d;
+      target = p.approach_machine;
+      along = "probe " + std::to_string(p.plan_index) + "'s axis";
+    }
+  }
+  if (along.empty()) {
+    // Not on any probe's axis: out along the surface's normal where the ball is nearest to it.
+    const SurfaceDistance::Closest c = travel_->Distance().ClosestPoint(ball);
+    const double out = config_.plan.ball_radius + config_.plan.clearance;
+    target = travel_->MachineFromBall(c.point + c.normal * out);
+    along = "the surface normal";
+  }
+  const std::string line = MachineMoveLine(target, config_.plan.press_feed_mm_per_min);
+  if (auto bad = Unsafe({line}, position_)) {
+    throw std::runtime_error("cannot back out of the gel from " + Fmt3(position_) + ": " + *bad);
+  }
+  Publish("backing out");
+  Commanded({line}, position_);
+  const GrblReply r = client_->WaitForOk(client_->Send(line), Ms(config_.engine.sync_timeout_s));
+  if (!r.Ok()) throw std::runtime_error("backing out of the gel failed: " + r.Describe());
+  client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
+  Event(EventLevel::kInfo, "the tool was in or near the gel at " + Fmt3(position_) +
+                               ": backed out along " + along + " to " + Fmt3(target));
+  position_ = target;
+  at_retract_of_ = -2;
+}
+
+void RunSession::Commanded(const std::vector<std::string>& lines, const Eigen::Vector3d& from) {
+  std::vector<Eigen::Vector3d> targets;
+  for (const std::string& line : lines) {
+    const auto x = line.find(" X");
+    double v[3];
+    if (line.rfind("G53 G", 0) == 0 && x != std::string::npos &&
+        std::sscanf(line.c_str() + x, " X%lf Y%lf Z%lf", &v[0], &v[1], &v[2]) == 3) {
+      targets.emplace_back(v[0], v[1], v[2]);
+    }
+  }
+  if (targets.empty()) return;
+  // Until a sync shows where the controller stands, it may stand at any point sent since: a
+  // retract sent without waiting, then refused after a reset, leaves the tool at the press.
+  if (last_path_.empty() || (last_path_.back() - from).norm() > 1e-6) last_path_.push_back(from);
+  last_path_.insert(last_path_.end(), targets.begin(), targets.end());
+  db_.SetCommandedPath(run_id_, last_path_);
+}
+
+void RunSession::ReturnToSafety(const PlannedProbe& planned) {
+  // After a failed line the tool may be anywhere on this probe's way in; its approach point is
+  // straight out along the normal, so going there first is always clear.
+  client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
+  const auto status = client_->QueryStatus(std::chrono::seconds(2));
+  if (status && status->machine_position) position_ = *status->machine_position;
+  const TravelPlanner::Gaps gaps = travel_->ToolGaps(travel_->BallFromMachine(position_));
+  if (gaps.Min() < config_.plan.travel_clearance * 0.5) {
+    const std::string line = MachineMoveLine(planned.approach_machine);
+    if (Unsafe({line}, position_)) return;
+    Commanded({line}, position_);
+    const GrblReply r = client_->WaitForOk(client_->Send(line), Ms(config_.engine.sync_timeout_s));
+    if (r.Ok()) position_ = planned.approach_machine;
+  }
+  at_retract_of_ = -2;
+}
+
+bool RunSession::Recover(const Step& step) {
+  if (++recoveries_ > config_.engine.max_recoveries) return false;
+  ++report_.recoveries;
+  Event(EventLevel::kWarning, step.message + "; recovering (" + std::to_string(recoveries_) + "/" +
+                                  std::to_string(config_.engine.max_recoveries) + ")");
+  if (step.kind == StepKind::kDisconnected || !client_->Connected()) {
+    Publish("reconnecting");
+    if (!client_->Reconnect(Ms(config_.engine.reconnect_timeout_s))) {
+      Event(EventLevel::kError, "the controller at " + config_.machine.uri +
+                                    " did not come back within " +
+                                    FormatFixed(config_.engine.reconnect_timeout_s, 0) + " s");
+      return false;
+    }
+  } else if (step.kind == StepKind::kStall) {
+    // A controller that stopped answering: a soft reset voids whatever it still holds.
+    if (!client_->SoftReset()) return false;
+  }
+  try {
+    // The controller may have reset: where the tool is must be known before anything moves.
+    if (auto ask = EstablishPosition(last_path_)) {
+      ask_ = std::move(ask);
+      return false;
+    }
+  } catch (const std::exception& e) {
+    Event(EventLevel::kError, std::string("after recovery: ") + e.what());
+    return false;
+  }
+  return true;
+}
+
+std::optional<Ask> RunSession::RecheckSensor() {
+  const auto captured = db_.ListCapturedProbes(run_id_);
+  const int want = std::min<int>(config_.engine.recheck_probes, static_cast<int>(captured.size()));
+  if (want == 0) return std::nullopt;
+  Publish("rechecking");
+  // Spread over the run: early, middle and late probes.
+  std::vector<std::size_t> picks;
+  for (int i = 0; i < want; ++i) {
+    picks.push_back(want == 1 ? captured.size() - 1
+                              : static_cast<std::size_t>(i) * (captured.size() - 1) /
+                                    static_cast<std::size_t>(want - 1));
+  }
+  cv::Mat reference;
+  int compared = 0;
+  double worst = 0.0;
+  for (std::size_t k = 0; k < picks.size(); ++k) {
+    const CapturedProbe& old = captured[picks[k]];
+    const PlannedProbe& planned = plan_.probes.at(static_cast<std::size_t>(old.probe.plan_index));
+    Press press;
+    const Step step = PressProbe(planned, k == 0, &press);
+    if (step.kind != StepKind::kOk) {
+      return Ask{"", "re-pressing probe " + std::to_string(old.probe.plan_index) +
+                         " failed: " + step.message};
+    }
+    if (k == 0) reference = press.reference;
+    const cv::Mat stored = db_.LoadFrame(old.frame_id);
+    const auto stored_ref_info = db_.NearestReferenceFrame(run_id_, old.frame_time);
+    if (!stored_ref_info || reference.empty()) continue;
+    const cv::Mat stored_ref = db_.LoadFrame(stored_ref_info->id);
+    const auto a = FindImpression(stored, stored_ref);
+    const auto b = FindImpression(press.frame, reference);
+    if (!a || !b) continue;
+    const double shift = (a->centroid - b->centroid).norm();
+    worst = std::max(worst, shift);
+    ++compared;
+    if (shift > config_.engine.recheck_max_shift_px) {
+      return Ask{"", "the sensor has moved since the run was interrupted: probe " +
+                         std::to_string(old.probe.plan_index) + "'s impression was at (" +
+                         FormatFixed(a->centroid.x(), 1) + ", " + FormatFixed(a->centroid.y(), 1) +
+                         ") px and is now at (" + FormatFixed(b->centroid.x(), 1) + ", " +
+                         FormatFixed(b->centroid.y(), 1) + ") px, a shift of " +
+                         FormatFixed(shift, 2) + " px (limit " +
+                         FormatFixed(config_.engine.recheck_max_shift_px, 2) +
+                         "). Re-seat the sensor exactly as before, or start a new run."};
+    }
+  }
+  if (compared == 0) {
+    const std::string why =
+        "resume: none of the " + std::to_string(want) +
+        " re-pressed probes showed an impression "
+        "comparable with its stored frame, so the sensor's position could not be verified";
+    if (overrides_.confirm != "sensor" && config_.engine.unverified_resume == "ask") {
+      return Ask{"sensor", why +
+                               ". Nothing else was pressed. Check that the sensor sits as it "
+                               "did, then `gs360 run resume " +
+                               std::to_string(run_id_) + " --confirm sensor`."};
+    }
+    Event(EventLevel::kWarning, why + (overrides_.confirm == "sensor"
+                                           ? ": going on, as the user confirmed"
+                                           : ": going on (engine.unverified_resume = continue)"));
+  } else {
+    Event(EventLevel::kInfo, "resume: " + std::to_string(compared) +
+                                 " re-pressed probes match their stored frames (largest shift " +
+                                 FormatFixed(worst, 2) + " px)");
+  }
+  return std::nullopt;
+}
+
+void RunSession::Park() {
+  Publish("parking");
+  const auto path = travel_->Path(position_, plan_.start_machine);
+  if (!path) {
+    Event(EventLevel::kWarning,
+          "no clear path back to the start position; the tool stays at " + Fmt3(position_));
+    return;
+  }
+  std::vector<std::string> lines = TravelLines(*path);
+  lines.push_back(MachineMoveLine(plan_.start_machine));
+  if (auto bad = Unsafe(lines, position_)) {
+    Event(EventLevel::kError, "not parking: " + *bad);
+    return;
+  }
+  Commanded(lines, position_);
+  for (const auto& line : lines) client_->Send(line);
+  position_ = plan_.start_machine;
+  client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
+}
+
+}  // namespace gs360

@@ -1,0 +1,169 @@
+#pragma once
+// The run engine's session (one RunEngine::Execute() call): private to daemon/run_engine.cc and
+// daemon/run_recovery.cc, not part of any public contract.
+
+#include <chrono>
+#include <cmath>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <spdlog/spdlog.h>
+#include <opencv2/core/mat.hpp>
+
+#include "capture/frame_source.h"
+#include "daemon/run_engine.h"
+#include "gcode/grbl_client.h"
+#include "gcode/probe_program.h"
+#include "geometry/fisheye.h"
+
+namespace gs360 {
+namespace session {
+
+using Clock = std::chrono::steady_clock;
+
+std::string Fmt3(const Eigen::Vector3d& v);
+
+inline std::chrono::milliseconds Ms(double seconds) {
+  return std::chrono::milliseconds(static_cast<long long>(std::ceil(seconds * 1000.0)));
+}
+
+// How one probe's streaming ended.
+enum class StepKind {
+  kOk,
+  kProbeError,    // error:N on one of its lines, or no frame / no position: the probe fails
+  kAlarm,         // the machine raised an alarm: stop the run
+  kReset,         // the controller reset: everything in flight is void, position lost
+  kDisconnected,  // the port vanished
+  kStall,         // no sync ok within the timeout
+  kSafety,        // a line would break a safety limit: nothing of it was sent
+};
+
+struct Step {
+  StepKind kind = StepKind::kOk;
+  std::string message;
+};
+
+// What a successful press produced.
+struct Press {
+  cv::Mat frame;
+  cv::Mat reference;  // the no-contact frame taken first, when one was asked for
+  Eigen::Vector3d mpos = Eigen::Vector3d::Zero();
+  Clock::time_point sync{};
+  Clock::time_point frame_time{};
+};
+
+// The run cannot go on safely without the user: what to confirm ("position", "sensor") and why.
+struct Ask {
+  std::string what;
+  std::string message;
+};
+
+}  // namespace session
+
+// One Execute() call: owns the connections for its duration.
+class RunSession {
+  using Clock = session::Clock;
+  using Step = session::Step;
+  using StepKind = session::StepKind;
+  using Press = session::Press;
+  using Ask = session::Ask;
+
+ public:
+  RunSession(RunEngine& engine, std::int64_t run_id, SessionOverrides overrides)
+      : engine_(engine), run_id_(run_id), db_(engine.database_), overrides_(std::move(overrides)) {}
+
+  RunReport Run();
+
+ private:
+  // Set-up.
+  void LoadRun();
+  void ConnectMachine();
+  // The controller's travel, rates and accelerations against the plan's machine; throws when its
+  // travel does not reach every planned position.
+  void CompareFirmware(const GrblMachineInfo& info);
+  // Knows where the tool is before anything moves (run_engine.h "Position"); `sent`: the last
+  // motion sent (start, then targets; empty if none): an idle controller must stand on one of
+  // its points. Asks the user when it cannot know; otherwise leaves the tool out of the gel,
+  // homed if configured, with the preamble sent. Throws std::runtime_error when the controller
+  // fails (no status, homing failed).
+  std::optional<Ask> EstablishPosition(const std::vector<Eigen::Vector3d>& sent);
+  void Home();
+  // $X after the user confirmed the position, said in the run's events; throws when refused.
+  void Unlock();
+  // In or near the gel: out along the probe's own axis (its approach point), or the surface
+  // normal where no probe's axis passes, at the press feed.
+  void BackOutOfGel();
+  // True when every segment of `path` (machine positions) keeps the tool clear of the sensor.
+  bool PathClearOfGel(const std::vector<Eigen::Vector3d>& path) const;
+  // Records the targets of motion `lines` about to be sent from `from`: appended to last_path_
+  // (reset to its end point by each sync) and stored as the run's commanded path.
+  void Commanded(const std::vector<std::string>& lines, const Eigen::Vector3d& from);
+  // Probing.
+  Step PressProbe(const PlannedProbe& planned, bool take_reference, Press* out);
+  Step SendAndSync(const std::vector<std::string>& lines, Clock::time_point* sync_at);
+  Step Classify(const std::vector<GrblHandle>& handles);
+  std::optional<std::vector<Eigen::Vector3d>> TravelTo(const PlannedProbe& planned);
+  bool Recover(const Step& step);
+  void ReturnToSafety(const PlannedProbe& planned);
+  // Re-presses a few committed probes on resume: nullopt when they match their stored frames;
+  // an Ask with `what` empty when the sensor moved (the run fails), "sensor" when nothing could
+  // be compared (the run asks, unless the user confirmed or the config says continue).
+  std::optional<Ask> RecheckSensor();
+  // The run stops, without moving, until the user confirms what `ask` says.
+  RunReport Awaiting(const Ask& ask);
+  // At the end of a session: waits for the motion sent to end and records its end point as the
+  // run's commanded path (a trusted, connected, unalarmed controller only).
+  void SettleAndRecord();
+  void Park();
+  void SendRetract(const ProbeProgram& program, const PlannedProbe& planned);
+  // The lines that would break a safety limit, sent from `from` in order; nullopt when all pass
+  // (or no limits are set). Records the violation for the run loop to stop on.
+  std::optional<std::string> Unsafe(const std::vector<std::string>& lines,
+                                    const Eigen::Vector3d& from);
+  // Bookkeeping.
+  double ToUnix(Clock::time_point t) const {
+    return std::chrono::duration<double>(t - steady_origin_).count() + unix_origin_;
+  }
+  void Publish(const std::string& phase, int plan_index = -1);
+  void Event(EventLevel level, const std::string& message) {
+    if (level >= EventLevel::kWarning) {
+      spdlog::warn("run {}: {}", run_id_, message);
+    } else {
+      spdlog::info("run {}: {}", run_id_, message);
+    }
+    db_.AppendEvent(run_id_, level, message);
+  }
+
+  RunEngine& engine_;
+  std::int64_t run_id_;
+  RunDatabase db_;
+  SessionOverrides overrides_;
+  RunConfig config_;
+  ProbePlan plan_;
+  std::shared_ptr<TravelPlanner> travel_;
+  std::unique_ptr<SafetyGuard> guard_;
+  std::optional<std::string> safety_stop_;  // a refused line: the run stops after this probe
+  std::optional<Ask> ask_;  // set by a recovery that needs the user: the run stops and asks
+  // The motion sent since the last sync: where it started, then each target (machine frame).
+  std::vector<Eigen::Vector3d> last_path_;
+  cv::Mat session_reference_;              // the latest no-contact frame of this session
+  std::unique_ptr<FisheyeCamera> camera_;  // the nominal camera, for where a press should show
+  std::unique_ptr<GrblClient> client_;
+  std::unique_ptr<FrameSource> source_;
+  ReferenceSchedule references_;
+  Eigen::Vector3d position_ = Eigen::Vector3d::Zero();  // where the streamed lines leave the tool
+  int at_retract_of_ = -2;  // plan index whose retract position the tool is at (-1: plan start)
+  std::optional<std::int64_t> last_reference_at_;  // probes done when the last reference was taken
+  std::int64_t probes_done_ = 0;
+  int recoveries_ = 0;
+  RunReport report_;
+  Clock::time_point session_start_ = Clock::now();
+  Clock::time_point steady_origin_ = Clock::now();
+  double unix_origin_ =
+      std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+  double recent_probe_s_ = 0.0;  // exponential mean of seconds per committed probe
+};
+
+}  // namespace gs360
