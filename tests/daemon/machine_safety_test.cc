@@ -63,6 +63,22 @@ void TweakNoHoming(VirtualRigOptions& o) {
   o.cnc.settings.soft_limits = false;    // GRBL refuses soft limits without homing
 }
 
+// What a SIGKILL during probe k's press leaves, after a few probes: the controller finished the
+// lines it had, the ball sits 1 mm in the gel, and the database holds the motion last sent.
+// Returns probe k.
+PlannedProbe KilledMidPress(RigFixture& f, RunEngine& engine, const ProbePlan& plan,
+                            std::int64_t run_id) {
+  AtProbe(engine, 3, [&] { engine.RequestStop(); });
+  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
+  const auto next = RunDatabase(f.db).NextPendingProbe(run_id, 3);
+  REQUIRE(next);
+  const PlannedProbe& p = plan.probes.at(static_cast<std::size_t>(next->plan_index));
+  ByHand(f, {MoveTo(p.approach_machine), MoveTo(p.press_machine)});
+  RunDatabase(f.db).SetCommandedPath(
+      run_id, std::vector<Eigen::Vector3d>{p.approach_machine, p.press_machine});
+  return p;
+}
+
 // Every committed probe was pressed once: no attempt was spent on a fault of the machine.
 void CheckOneAttemptEach(const RigFixture& f, std::int64_t run_id) {
   RunDatabase db(f.db);
@@ -158,17 +174,7 @@ TEST_CASE("a run killed mid-press backs out along the probe's axis before any tr
   RunEngine engine(f.db);
   ProbePlan plan;
   const auto run_id = engine.CreateRun(f.config, &plan);
-  AtProbe(engine, 3, [&] { engine.RequestStop(); });
-  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
-  const auto next = RunDatabase(f.db).NextPendingProbe(run_id, 3);
-  REQUIRE(next);
-  const PlannedProbe& p = plan.probes.at(static_cast<std::size_t>(next->plan_index));
-
-  // What a SIGKILL during probe k's press leaves: the controller finished the lines it had, the
-  // ball sits 1 mm in the gel, and the database holds the motion last sent.
-  ByHand(f, {MoveTo(p.approach_machine), MoveTo(p.press_machine)});
-  RunDatabase(f.db).SetCommandedPath(
-      run_id, std::vector<Eigen::Vector3d>{p.approach_machine, p.press_machine});
+  const PlannedProbe p = KilledMidPress(f, engine, plan, run_id);
 
   const RunReport resumed = engine.Execute(run_id);
   CHECK(resumed.outcome == RunOutcome::kDone);
@@ -184,14 +190,7 @@ TEST_CASE("a controller restarted while the ball may be in the gel is not homed 
   RunEngine engine(f.db);
   ProbePlan plan;
   const auto run_id = engine.CreateRun(f.config, &plan);
-  AtProbe(engine, 3, [&] { engine.RequestStop(); });
-  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
-  const auto next = RunDatabase(f.db).NextPendingProbe(run_id, 3);
-  REQUIRE(next);
-  const PlannedProbe& p = plan.probes.at(static_cast<std::size_t>(next->plan_index));
-  ByHand(f, {MoveTo(p.approach_machine), MoveTo(p.press_machine)});
-  RunDatabase(f.db).SetCommandedPath(
-      run_id, std::vector<Eigen::Vector3d>{p.approach_machine, p.press_machine});
+  const PlannedProbe p = KilledMidPress(f, engine, plan, run_id);
   f.rig->cnc().PowerCycle();  // boots in Alarm (homing lock), MPos 0,0,0
 
   const RunReport asked = engine.Execute(run_id);
@@ -316,4 +315,25 @@ TEST_CASE("resume asks when the re-pressed probes cannot be compared", "[daemon]
   CHECK_THAT(asked.message, Contains("could not be verified") && Contains("--confirm sensor"));
   CHECK(RunDatabase(f.db).GetRun(run_id)->awaiting == "sensor");
   CHECK(RunDatabase(f.db).CountProbes(run_id).captured == before);  // nothing else pressed
+}
+
+TEST_CASE("a board that resets when its port opens: each session homes again, nothing is lost",
+          "[daemon][safety]") {
+  RigFixture f("resetopen", 30, 0.0, false,
+               [](VirtualRigOptions& o) { o.cnc.reset_on_open = true; });
+  RunEngine engine(f.db);
+  const auto run_id = engine.CreateRun(f.config);
+  AtProbe(engine, 4, [&] { engine.RequestStop(); });
+  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
+  const auto boots = f.rig->cnc().Stats().boots;
+  const auto before = RunDatabase(f.db).CountProbes(run_id).captured;
+  // The resume's open restarts the board (MPos 0,0,0, homing lock): the tool was parked clear of
+  // the gel at a settled point, so the run homes and goes on.
+  const RunReport r = engine.Execute(run_id);
+  CHECK(r.outcome == RunOutcome::kDone);
+  CHECK(f.rig->cnc().Stats().boots > boots);
+  CHECK(RunDatabase(f.db).CountProbes(run_id).captured > before);
+  CheckOneAttemptEach(f, run_id);
+  const cli::CaptureTruth truth = cli::CheckCapturesAgainstTruth(*f.rig, RunDatabase(f.db), run_id);
+  CHECK(truth.off_target == 0);
 }
