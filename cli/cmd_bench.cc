@@ -37,12 +37,14 @@ double CpuSeconds() {
 }  // namespace
 
 void RegisterDaemonBench(CLI::App& bench, CommandContext& ctx);  // bench_daemon.cc
+void RegisterReconBench(CLI::App& bench, CommandContext& ctx);   // bench_recon.cc
 
 void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
   static BenchOptions o;
   auto* bench = app.add_subcommand("bench", "Benchmarks on the virtual rig (figures, not tests)");
   bench->require_subcommand(1);
   RegisterDaemonBench(*bench, ctx);
+  RegisterReconBench(*bench, ctx);
   auto* acq = bench->add_subcommand(
       "acquisition",
       "Time a run: probing wall time vs the planner's estimate, host time per probe");

@@ -21,5 +21,6 @@ void RegisterRunCommands(CLI::App& app, CommandContext& ctx);       // run start
 void RegisterBenchCommands(CLI::App& app, CommandContext& ctx);     // bench acquisition
 void RegisterCalibrateCommand(CLI::App& app, CommandContext& ctx);  // calibrate
 void RegisterExportCommand(CLI::App& app, CommandContext& ctx);     // export
+void RegisterReconCommand(CLI::App& app, CommandContext& ctx);      // recon
 
 }  // namespace gs360::cli

@@ -43,6 +43,7 @@ int main(int argc, char** argv) {
   gs360::cli::RegisterBenchCommands(app, ctx);
   gs360::cli::RegisterCalibrateCommand(app, ctx);
   gs360::cli::RegisterExportCommand(app, ctx);
+  gs360::cli::RegisterReconCommand(app, ctx);
 
   try {
     app.parse(argc, argv);

@@ -10,12 +10,16 @@
 #include <stdexcept>
 
 #include <nlohmann/json.hpp>
+#include <opencv2/imgproc.hpp>
 
 namespace gs360 {
 namespace {
 
 using Json = nlohmann::json;
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+// The screen passes a frame on to the full path when its coarse |f| reaches this fraction of the
+// detection threshold: the margin covers what the full resolution adds to a small contact's peak.
+constexpr double kScreenFraction = 0.75;
 
 double Seconds(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -198,6 +202,40 @@ Reconstructor::Reconstructor(std::shared_ptr<const SurfaceMap> map, const Fishey
         std::to_string(options_.difference.context_sigmas_px.size()) + " context scales)");
   }
   visible_ = map_->VisibleMask();
+  // The screen's half-size images: a coarse pixel counts only where all four fine ones are seen.
+  cv::Mat coarse_visible;
+  cv::resize(visible_, coarse_visible, cv::Size(), 0.5, 0.5, cv::INTER_AREA);
+  coarse_visible_ = coarse_visible == 255;
+  cv::resize(reference_, coarse_reference_, coarse_visible_.size(), 0, 0, cv::INTER_AREA);
+}
+
+bool Reconstructor::MayTouch(const cv::Mat& frame, const cv::Mat& reference) const {
+  // Half size, 2x2 means: a quarter of the pixels with half the noise. Unsmoothed and against
+  // half the detection threshold, so that whatever the full path would find is seen here.
+  cv::Mat small_frame, small_reference;
+  cv::resize(frame, small_frame, coarse_visible_.size(), 0, 0, cv::INTER_AREA);
+  if (reference.data == reference_.data) {
+    small_reference = coarse_reference_;
+  } else {
+    cv::resize(reference, small_reference, coarse_visible_.size(), 0, 0, cv::INTER_AREA);
+  }
+  // The full path smooths f (smooth_sigma_px) and then |f| (blur_sigma_px) before its threshold;
+  // at half size half those sigmas do the same to the noise.
+  DifferenceOptions coarse = options_.difference;
+  coarse.smooth_sigma_px = 0.5 * options_.difference.smooth_sigma_px;
+  coarse.gain_stride = std::max(1, coarse.gain_stride / 2);
+  const cv::Mat diff = NormalizedDifference(small_frame, small_reference, coarse_visible_, coarse);
+  cv::Mat magnitude(diff.size(), CV_32F);
+  for (int y = 0; y < diff.rows; ++y) {
+    const cv::Vec3f* in = diff.ptr<cv::Vec3f>(y);
+    float* out = magnitude.ptr<float>(y);
+    for (int x = 0; x < diff.cols; ++x) out[x] = std::sqrt(in[x].dot(in[x]));
+  }
+  const double sigma = 0.5 * options_.detection.blur_sigma_px;
+  if (sigma > 0.0) cv::GaussianBlur(magnitude, magnitude, cv::Size(), sigma);
+  double peak = 0.0;
+  cv::minMaxLoc(magnitude, nullptr, &peak);
+  return peak > kScreenFraction * options_.detection.threshold;
 }
 
 cv::Mat Reconstructor::Difference(const cv::Mat& frame, const cv::Mat& reference,
@@ -321,6 +359,10 @@ FrameReconstruction Reconstructor::Reconstruct(const cv::Mat& frame,
                                                const cv::Mat& reference) const {
   const auto t0 = std::chrono::steady_clock::now();
   FrameReconstruction out;
+  if (options_.screen && !MayTouch(frame, reference)) {
+    out.seconds = Seconds(t0);
+    return out;
+  }
   const cv::Mat diff = Difference(frame, reference, &out.gain);
   for (const ContactRegion& region : DetectContactRegions(diff, options_.detection)) {
     if (region.roi.width < 3 || region.roi.height < 3) continue;

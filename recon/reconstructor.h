@@ -39,6 +39,10 @@ struct ReconstructionOptions {
   ContactDetectionOptions detection;
   GradientOptions gradients;
   IntegrationOptions integration;
+  // A half-size look at the frame first: a frame that nowhere differs from the reference by
+  // half the detection threshold has no contact, and costs a fraction of the full difference.
+  // A run-time choice, not part of a model (not serialised).
+  bool screen = true;
   // Throws std::invalid_argument naming the field (delegates to the nested Check()s).
   void Check() const;
 };
@@ -90,6 +94,9 @@ class Reconstructor {
   FrameReconstruction Reconstruct(const cv::Mat& frame) const;
   FrameReconstruction Reconstruct(const cv::Mat& frame, const cv::Mat& reference) const;
 
+  // The screen (ReconstructionOptions::screen): false when the frame certainly has no contact.
+  bool MayTouch(const cv::Mat& frame, const cv::Mat& reference) const;
+
   // The pieces, for validation and tools:
   // CV_32FC3 normalised difference, masked to visible pixels.
   cv::Mat Difference(const cv::Mat& frame, const cv::Mat& reference,
@@ -114,6 +121,8 @@ class Reconstructor {
   Mlp mlp_;
   cv::Mat reference_;
   cv::Mat visible_;
+  cv::Mat coarse_visible_;    // CV_8U, half size: 255 where all four pixels are visible
+  cv::Mat coarse_reference_;  // reference_ at half size (2x2 means)
   ReconstructionOptions options_;
 };
 

@@ -1,0 +1,299 @@
+// `gs360 bench recon`: run-time reconstruction's speed per stage and its accuracy, on frames of
+// the virtual rig through a model calibrated on it (docs/benchmarks.md). Scenes: no contact, one
+// contact on the side, on the tip and across a fin, three at once, a dense (deep) one.
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <numbers>
+#include <thread>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+
+#include "calib/train.h"
+#include "cli/commands.h"
+#include "cli/sim_model.h"
+#include "recon/contacts.h"
+#include "recon/model_bundle.h"
+#include "sim/tactile_camera.h"
+
+namespace gs360::cli {
+namespace {
+
+using Json = nlohmann::json;
+using Clock = std::chrono::steady_clock;
+
+struct BenchReconArgs {
+  std::string model;
+  std::string cache;
+  int train_probes = 300;
+  int epochs = 15;
+  double seconds = 2.0;  // per scene and thread count
+  bool no_screen = false;
+};
+
+struct Scene {
+  std::string name;
+  cv::Mat frame;
+  std::vector<Eigen::Vector3d> balls;  // sensor frame
+};
+
+struct StageTimes {
+  double screen = 0, difference = 0, detection = 0, mlp = 0, integration = 0, cloud = 0;
+  int frames = 0;
+};
+
+double Since(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+// A ball centre pressing `depth` mm at (t, phi) of the cylinder's profile.
+Eigen::Vector3d Ball(const SimRig& rig, double t, double phi, double depth) {
+  return rig.profile().SurfacePoint(t, phi) +
+         (rig.ball_radius() - depth) * rig.profile().SurfaceNormal(t, phi);
+}
+
+// Several contacts at once: each rendered alone, their changes added to one reference.
+cv::Mat Composite(TactileCamera& camera, const std::vector<Eigen::Vector3d>& balls,
+                  std::uint64_t index) {
+  const cv::Mat reference = camera.RenderReference(index, 100.0);
+  cv::Mat sum;
+  reference.convertTo(sum, CV_32FC3);
+  for (const Eigen::Vector3d& b : balls) {
+    cv::Mat one, ref32;
+    camera.RenderAtBall(b, index, 100.0).convertTo(one, CV_32FC3);
+    reference.convertTo(ref32, CV_32FC3);
+    sum += one - ref32;
+  }
+  cv::Mat out;
+  sum.convertTo(out, CV_8UC3);
+  return out;
+}
+
+std::vector<Scene> MakeScenes(const SimRig& rig, TactileCamera& camera) {
+  const double q = std::numbers::pi / 4.0;
+  std::vector<Scene> s;
+  s.push_back({"no contact", camera.RenderReference(5000, 100.0), {}});
+  const auto one = [&](const std::string& name, double t, double phi, double depth,
+                       std::uint64_t i) {
+    const Eigen::Vector3d b = Ball(rig, t, phi, depth);
+    s.push_back({name, camera.RenderAtBall(b, i, 100.0), {b}});
+  };
+  one("side", 0.5, q, 1.0, 5001);
+  one("tip", 0.8, q, 1.0, 5002);  // on the cap, 49 deg from the axis (nearer, the fins meet)
+  one("across a fin", 0.5, 0.06, 1.0, 5003);
+  std::vector<Eigen::Vector3d> three = {Ball(rig, 0.35, q, 1.0), Ball(rig, 0.5, 3 * q, 1.0),
+                                        Ball(rig, 0.65, 5 * q, 1.0)};
+  s.push_back({"three contacts", Composite(camera, three, 5004), three});
+  one("dense", 0.5, 3 * q, 1.5, 5005);
+  return s;
+}
+
+// One frame through the pieces of Reconstructor::Reconstruct, timing each.
+FrameReconstruction TimedFrame(const Reconstructor& r, const cv::Mat& frame, StageTimes* t) {
+  auto t0 = Clock::now();
+  FrameReconstruction out;
+  const bool may_touch = !r.options().screen || r.MayTouch(frame, r.reference());
+  t->screen += Since(t0);
+  if (!may_touch) {
+    ++t->frames;
+    return out;
+  }
+  t0 = Clock::now();
+  const cv::Mat diff = r.Difference(frame, r.reference(), &out.gain);
+  t->difference += Since(t0);
+  t0 = Clock::now();
+  const auto regions = DetectContactRegions(diff, r.options().detection);
+  t->detection += Since(t0);
+  for (const ContactRegion& region : regions) {
+    if (region.roi.width < 3 || region.roi.height < 3) continue;
+    t0 = Clock::now();
+    const cv::Mat slopes = r.PredictSlopes(diff, region.roi);
+    t->mlp += Since(t0);
+    t0 = Clock::now();
+    out.regions.push_back(r.IntegrateSlopes(slopes, region, r.options().integration));
+    t->integration += Since(t0);
+  }
+  t0 = Clock::now();
+  const auto points = r.PointCloud(out);
+  t->cloud += Since(t0);
+  ++t->frames;
+  return out;
+}
+
+// Frames per second of whole Reconstruct() calls on `threads` threads for about `seconds`.
+double Throughput(const Reconstructor& r, const cv::Mat& frame, int threads, double seconds) {
+  std::vector<int> counts(static_cast<std::size_t>(threads), 0);
+  const auto t0 = Clock::now();
+  std::vector<std::thread> pool;
+  for (int i = 0; i < threads; ++i) {
+    pool.emplace_back([&, i] {
+      while (Since(t0) < seconds) {
+        r.Reconstruct(frame);
+        ++counts[static_cast<std::size_t>(i)];
+      }
+    });
+  }
+  for (auto& t : pool) t.join();
+  int total = 0;
+  for (int c : counts) total += c;
+  return total / Since(t0);
+}
+
+// Depth error (mm, along the gel's normal) of every reconstructed pixel against the rigid
+// imprint of the true balls, as the calibration's validation measures it: along a pixel's ray the
+// surface is the nearer of the undeformed gel and the ball's near side.
+Json Accuracy(const Reconstructor& r, const FrameReconstruction& rec, const Scene& scene,
+              double ball_radius) {
+  const SurfaceMap& map = r.map();
+  std::vector<Eigen::Vector3d> centres;
+  double true_peak = 0.0;
+  for (const Eigen::Vector3d& b : scene.balls) centres.push_back(map.cam_from_sensor() * b);
+  double sum = 0.0, worst = 0.0;
+  std::size_t n = 0;
+  for (const RegionReconstruction& reg : rec.regions) {
+    for (int y = 0; y < reg.region.roi.height; ++y) {
+      for (int x = 0; x < reg.region.roi.width; ++x) {
+        const int u = reg.region.roi.x + x, v = reg.region.roi.y + y;
+        const double rho = reg.rho.at<double>(y, x);
+        if (!std::isfinite(rho) || !map.visible(u, v)) continue;
+        const Eigen::Vector3d d = map.ray(u, v);
+        double truth = map.rho0(u, v);
+        for (const Eigen::Vector3d& c : centres) {
+          const double b = d.dot(c), disc = b * b - (c.squaredNorm() - ball_radius * ball_radius);
+          if (disc > 0.0) truth = std::min(truth, b - std::sqrt(disc));
+        }
+        const double cosine = std::abs(d.dot(map.normal0(u, v)));
+        true_peak = std::max(true_peak, (map.rho0(u, v) - truth) * cosine);
+        const double error = std::abs(rho - truth) * cosine;
+        sum += error;
+        worst = std::max(worst, error);
+        ++n;
+      }
+    }
+  }
+  const auto points = r.PointCloud(rec);
+  const auto contacts = SummarizeContacts(r, rec);
+  double peak = 0.0;
+  bool partial = false;
+  for (const ContactSummary& c : contacts) {
+    peak = std::max(peak, c.peak_indentation_mm);
+    partial = partial || c.partial;
+  }
+  return Json{{"contacts_found", contacts.size()},
+              {"contacts_true", scene.balls.size()},
+              {"points", points.size()},
+              {"pixels", n},
+              {"mean_error_mm", n == 0 ? 0.0 : sum / static_cast<double>(n)},
+              {"max_error_mm", worst},
+              {"peak_mm", peak},
+              {"true_peak_mm", true_peak},
+              {"partial", partial}};
+}
+
+std::filesystem::path CacheDir(const BenchReconArgs& a) {
+  std::filesystem::path base = a.cache;
+  if (base.empty()) {
+    const char* xdg = std::getenv("XDG_CACHE_HOME");
+    const char* home = std::getenv("HOME");
+    base = xdg && *xdg ? std::filesystem::path(xdg) / "gs360"
+           : home      ? std::filesystem::path(home) / ".cache" / "gs360"
+                       : std::filesystem::temp_directory_path() / "gs360-cache";
+  }
+  return base /
+         ("bench-recon-model-" + std::to_string(a.train_probes) + "-" + std::to_string(a.epochs));
+}
+
+int RunBenchRecon(const BenchReconArgs& a, const CommandContext& ctx) {
+  std::filesystem::path model_path = a.model;
+  if (model_path.empty()) {
+    SimModelOptions mo;
+    mo.probes = a.train_probes;
+    mo.hidden = TrainOptions{}.hidden;
+    mo.epochs = a.epochs;
+    const auto dir = CacheDir(a);
+    if (!ctx.json)
+      std::fprintf(stderr, "model: calibrating on the virtual rig in %s (cached)\n", dir.c_str());
+    model_path = MakeSimModel(dir, mo);
+  }
+  ModelBundle bundle = ReadModelBundle(model_path);
+  bundle.reconstruction.screen = !a.no_screen;
+  const Reconstructor recon = bundle.MakeReconstructor(2);
+  SimRigOptions so;
+  so.seed = SimModelOptions{}.seed;
+  auto rig = std::make_shared<const SimRig>(so);
+  TactileCamera camera(rig);
+  Json rows = Json::array();
+  if (!ctx.json) {
+    std::printf("%-15s %8s %8s %8s %8s %8s %8s %8s %9s %9s %6s %8s %8s\n", "scene", "screen",
+                "diff ms", "detect", "mlp", "integr", "cloud", "total", "1 thr f/s", "2 thr f/s",
+                "x", "mean mm", "peak mm");
+  }
+  for (const Scene& scene : MakeScenes(*rig, camera)) {
+    StageTimes t;
+    FrameReconstruction last;
+    const auto t0 = Clock::now();
+    while (Since(t0) < a.seconds || t.frames < 3) last = TimedFrame(recon, scene.frame, &t);
+    const double n = t.frames;
+    const double one = Throughput(recon, scene.frame, 1, a.seconds);
+    const double two = Throughput(recon, scene.frame, 2, a.seconds);
+    Json row{{"scene", scene.name},
+             {"ms",
+              {{"screen", 1e3 * t.screen / n},
+               {"difference", 1e3 * t.difference / n},
+               {"detection", 1e3 * t.detection / n},
+               {"mlp", 1e3 * t.mlp / n},
+               {"integration", 1e3 * t.integration / n},
+               {"point_cloud", 1e3 * t.cloud / n}}},
+             {"frames_per_s_1_thread", one},
+             {"frames_per_s_2_threads", two},
+             {"two_thread_speedup", two / one},
+             {"accuracy", Accuracy(recon, last, scene, rig->ball_radius())}};
+    const double total =
+        1e3 * (t.screen + t.difference + t.detection + t.mlp + t.integration + t.cloud) / n;
+    row["ms"]["total"] = total;
+    rows.push_back(row);
+    if (!ctx.json) {
+      const Json& acc = row["accuracy"];
+      std::printf("%-15s %8.2f %8.2f %8.2f %8.2f %8.2f %8.2f %8.2f %9.1f %9.1f %6.2f %8.4f %8.3f\n",
+                  scene.name.c_str(), row["ms"]["screen"].get<double>(),
+                  row["ms"]["difference"].get<double>(), row["ms"]["detection"].get<double>(),
+                  row["ms"]["mlp"].get<double>(), row["ms"]["integration"].get<double>(),
+                  row["ms"]["point_cloud"].get<double>(), total, one, two, two / one,
+                  acc["mean_error_mm"].get<double>(), acc["peak_mm"].get<double>());
+    }
+  }
+  const Json result{{"model", model_path.string()},
+                    {"screen", !a.no_screen},
+                    {"mlp_sizes", bundle.mlp.sizes()},
+                    {"image", {recon.map().width(), recon.map().height()}},
+                    {"hardware_threads", std::thread::hardware_concurrency()},
+                    {"scenes", rows}};
+  if (ctx.json) std::printf("%s\n", result.dump(2).c_str());
+  return 0;
+}
+
+}  // namespace
+
+void RegisterReconBench(CLI::App& bench, CommandContext& ctx) {
+  static BenchReconArgs a;
+  auto* cmd = bench.add_subcommand(
+      "recon", "Reconstruction speed per stage and accuracy on virtual-rig frames");
+  cmd->add_option("--model", a.model, "A model bundle; default: one calibrated on the virtual rig");
+  cmd->add_option("--cache", a.cache, "Where the default model is kept (~/.cache/gs360)");
+  cmd->add_option("--train-probes", a.train_probes, "Presses of the default model")
+      ->check(CLI::Range(20, 100000));
+  cmd->add_option("--epochs", a.epochs, "Training epochs of the default model")
+      ->check(CLI::Range(1, 1000));
+  cmd->add_option("--seconds", a.seconds, "Measuring time per scene and thread count")
+      ->check(CLI::Range(0.1, 600.0));
+  cmd->add_flag("--no-screen", a.no_screen,
+                "Without the half-size look for frames without contact");
+  cmd->callback([&ctx] { ctx.exit_code = RunBenchRecon(a, ctx); });
+}
+
+}  // namespace gs360::cli
