@@ -151,8 +151,41 @@ void ContactDetectionOptions::Check() const {
   if (max_regions < 1) Bad("ContactDetectionOptions.max_regions", max_regions, ">= 1");
 }
 
+cv::Vec3d EstimateGain(const cv::Mat& frame, const cv::Mat& reference, const cv::Mat& valid,
+                       const DifferenceOptions& options) {
+  if (frame.type() != CV_8UC3 || reference.type() != CV_8UC3 || frame.size() != reference.size() ||
+      (!valid.empty() && valid.size() != frame.size())) {
+    throw std::invalid_argument("EstimateGain: frame, reference (CV_8UC3) and mask of one size");
+  }
+  cv::Vec3d gain(1.0, 1.0, 1.0);
+  if (!options.compensate_gain) return gain;
+  std::vector<float> ratios[3];
+  for (int v = 0; v < frame.rows; v += options.gain_stride) {
+    const auto* f = frame.ptr<cv::Vec3b>(v);
+    const auto* r = reference.ptr<cv::Vec3b>(v);
+    const auto* m = valid.empty() ? nullptr : valid.ptr<std::uint8_t>(v);
+    for (int u = 0; u < frame.cols; u += options.gain_stride) {
+      if (m != nullptr && m[u] == 0) continue;
+      for (int c = 0; c < 3; ++c) {
+        if (r[u][c] >= options.gain_min_reference_dn) {
+          ratios[c].push_back(static_cast<float>(f[u][c]) / static_cast<float>(r[u][c]));
+        }
+      }
+    }
+  }
+  for (int c = 0; c < 3; ++c) {
+    // Too few bright pixels in a channel (e.g. a sensor lit by one colour): keep g = 1.
+    if (ratios[c].size() < 64) continue;
+    auto mid = ratios[c].begin() + static_cast<std::ptrdiff_t>(ratios[c].size() / 2);
+    std::nth_element(ratios[c].begin(), mid, ratios[c].end());
+    gain[c] = *mid;
+  }
+  return gain;
+}
+
 cv::Mat NormalizedDifference(const cv::Mat& frame, const cv::Mat& reference, const cv::Mat& valid,
-                             const DifferenceOptions& options, cv::Vec3d* gain_out) {
+                             const DifferenceOptions& options, cv::Vec3d* gain_out,
+                             const cv::Vec3d* gain_in) {
   options.Check();
   if (frame.type() != CV_8UC3 || reference.type() != CV_8UC3 || frame.size() != reference.size()) {
     throw std::invalid_argument(
@@ -164,30 +197,8 @@ cv::Mat NormalizedDifference(const cv::Mat& frame, const cv::Mat& reference, con
   if (!valid.empty() && (valid.type() != CV_8U || valid.size() != frame.size())) {
     throw std::invalid_argument("NormalizedDifference: valid mask must be CV_8U of the image size");
   }
-  cv::Vec3d gain(1.0, 1.0, 1.0);
-  if (options.compensate_gain) {
-    std::vector<float> ratios[3];
-    for (int v = 0; v < frame.rows; v += options.gain_stride) {
-      const auto* f = frame.ptr<cv::Vec3b>(v);
-      const auto* r = reference.ptr<cv::Vec3b>(v);
-      const auto* m = valid.empty() ? nullptr : valid.ptr<std::uint8_t>(v);
-      for (int u = 0; u < frame.cols; u += options.gain_stride) {
-        if (m != nullptr && m[u] == 0) continue;
-        for (int c = 0; c < 3; ++c) {
-          if (r[u][c] >= options.gain_min_reference_dn) {
-            ratios[c].push_back(static_cast<float>(f[u][c]) / static_cast<float>(r[u][c]));
-          }
-        }
-      }
-    }
-    for (int c = 0; c < 3; ++c) {
-      // Too few bright pixels in a channel (e.g. a sensor lit by one colour): keep g = 1.
-      if (ratios[c].size() < 64) continue;
-      auto mid = ratios[c].begin() + static_cast<std::ptrdiff_t>(ratios[c].size() / 2);
-      std::nth_element(ratios[c].begin(), mid, ratios[c].end());
-      gain[c] = *mid;
-    }
-  }
+  const cv::Vec3d gain =
+      gain_in != nullptr ? *gain_in : EstimateGain(frame, reference, valid, options);
   if (gain_out != nullptr) *gain_out = gain;
   cv::Mat out(frame.size(), CV_32FC3, cv::Scalar::all(0));
   const float floor = static_cast<float>(options.floor_dn);

@@ -48,8 +48,14 @@ struct DifferenceOptions {
 // frame, reference: CV_8UC3 of one size; valid: empty or CV_8U of that size (non-zero = use).
 // Returns CV_32FC3 (B, G, R order like the input); 0 outside `valid`. Throws
 // std::invalid_argument for mismatched inputs.
+// `gain_in`, when given, is used instead of estimating g from these images (a window of a frame
+// whose gain was estimated over all of it: EstimateGain).
 cv::Mat NormalizedDifference(const cv::Mat& frame, const cv::Mat& reference, const cv::Mat& valid,
-                             const DifferenceOptions& options = {}, cv::Vec3d* gain_out = nullptr);
+                             const DifferenceOptions& options = {}, cv::Vec3d* gain_out = nullptr,
+                             const cv::Vec3d* gain_in = nullptr);
+// The per-channel gain g of NormalizedDifference (1 without compensate_gain). Same inputs.
+cv::Vec3d EstimateGain(const cv::Mat& frame, const cv::Mat& reference, const cv::Mat& valid,
+                       const DifferenceOptions& options = {});
 
 // The MLP's input size for these options: kFeatureCount + kContextFeatureCount per context scale.
 int FeatureCount(const DifferenceOptions& options);

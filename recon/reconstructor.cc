@@ -6,6 +6,7 @@
 #include <limits>
 #include <map>
 #include <numbers>
+#include <optional>
 #include <set>
 #include <stdexcept>
 
@@ -65,6 +66,10 @@ class ObjectReader {
 }  // namespace
 
 void ReconstructionOptions::Check() const {
+  if (mlp_stride < 1 || mlp_stride > 8) {
+    throw std::invalid_argument("ReconstructionOptions.mlp_stride = " + std::to_string(mlp_stride) +
+                                " must be in 1..8");
+  }
   difference.Check();
   detection.Check();
   gradients.Check();
@@ -209,7 +214,8 @@ Reconstructor::Reconstructor(std::shared_ptr<const SurfaceMap> map, const Fishey
   cv::resize(reference_, coarse_reference_, coarse_visible_.size(), 0, 0, cv::INTER_AREA);
 }
 
-bool Reconstructor::MayTouch(const cv::Mat& frame, const cv::Mat& reference) const {
+std::optional<cv::Rect> Reconstructor::ScreenWindow(const cv::Mat& frame,
+                                                    const cv::Mat& reference) const {
   // Half size, 2x2 means: a quarter of the pixels with half the noise. Unsmoothed and against
   // half the detection threshold, so that whatever the full path would find is seen here.
   cv::Mat small_frame, small_reference;
@@ -233,9 +239,57 @@ bool Reconstructor::MayTouch(const cv::Mat& frame, const cv::Mat& reference) con
   }
   const double sigma = 0.5 * options_.detection.blur_sigma_px;
   if (sigma > 0.0) cv::GaussianBlur(magnitude, magnitude, cv::Size(), sigma);
-  double peak = 0.0;
-  cv::minMaxLoc(magnitude, nullptr, &peak);
-  return peak > kScreenFraction * options_.detection.threshold;
+  const cv::Mat changed =
+      magnitude > static_cast<float>(kScreenFraction * options_.detection.threshold);
+  const cv::Rect box = cv::boundingRect(changed);
+  if (box.empty()) return std::nullopt;
+  // The window the full path must see: the change, grown by more than DetectContactRegions
+  // grows a blob into its roi (grow_fraction, grow_px) plus the context features' reach (3 sigma
+  // of the largest scale) beyond that roi, so that inside it both paths compute the same.
+  const cv::Rect change(2 * box.x, 2 * box.y, 2 * box.width, 2 * box.height);
+  double reach = 0.0;
+  for (double s : options_.difference.context_sigmas_px) reach = std::max(reach, 3.0 * s);
+  const int margin = static_cast<int>(
+      std::ceil((options_.detection.grow_fraction + 0.05) * std::max(change.width, change.height) +
+                options_.detection.grow_px + reach + 4.0 * options_.detection.blur_sigma_px + 4.0));
+  const cv::Rect window(change.x - margin, change.y - margin, change.width + 2 * margin,
+                        change.height + 2 * margin);
+  return window & cv::Rect(0, 0, frame.cols, frame.rows);
+}
+
+bool Reconstructor::MayTouch(const cv::Mat& frame, const cv::Mat& reference) const {
+  return ScreenWindow(frame, reference).has_value();
+}
+
+DetectedContacts Reconstructor::Detect(const cv::Mat& frame, const cv::Mat& reference) const {
+  DetectedContacts out;
+  const cv::Rect image(0, 0, frame.cols, frame.rows);
+  out.window = image;
+  if (options_.screen) {
+    const auto window = ScreenWindow(frame, reference);
+    if (!window) {
+      out.window = cv::Rect();
+      return out;
+    }
+    out.window = *window;
+  }
+  if (out.window == image) {
+    out.difference = Difference(frame, reference, &out.gain);
+  } else {
+    // The gain from the whole image, as the full path estimates it; the difference in the window.
+    out.gain = EstimateGain(frame, reference, visible_, options_.difference);
+    out.difference = cv::Mat(frame.size(), CV_32FC3, cv::Scalar::all(0));
+    const cv::Rect& w = out.window;
+    NormalizedDifference(frame(w), reference(w), visible_(w), options_.difference, nullptr,
+                         &out.gain)
+        .copyTo(out.difference(w));
+  }
+  out.regions = DetectContactRegions(out.difference(out.window), options_.detection);
+  for (ContactRegion& r : out.regions) {
+    r.blob += out.window.tl();
+    r.roi += out.window.tl();
+  }
+  return out;
 }
 
 cv::Mat Reconstructor::Difference(const cv::Mat& frame, const cv::Mat& reference,
@@ -243,18 +297,21 @@ cv::Mat Reconstructor::Difference(const cv::Mat& frame, const cv::Mat& reference
   return NormalizedDifference(frame, reference, visible_, options_.difference, gain);
 }
 
-cv::Mat Reconstructor::PredictSlopes(const cv::Mat& diff, const cv::Rect& roi) const {
-  cv::Mat slopes(roi.size(), CV_32FC2, cv::Scalar::all(0));
-  std::vector<cv::Point> pixels;
-  pixels.reserve(roi.area());
-  for (int v = roi.y; v < roi.y + roi.height; ++v) {
-    for (int u = roi.x; u < roi.x + roi.width; ++u) {
-      if (map_->visible(u, v)) pixels.emplace_back(u, v);
-    }
-  }
-  if (pixels.empty()) return slopes;
-  const cv::Mat context =
-      ContextFeatures(diff, visible_, roi, options_.difference.context_sigmas_px);
+namespace {
+
+// Grid lines of a stride-s grid over [0, n): 0, s, 2s, ... and n - 1.
+std::vector<int> GridLines(int n, int s) {
+  std::vector<int> lines;
+  for (int i = 0; i < n; i += s) lines.push_back(i);
+  if (lines.back() != n - 1) lines.push_back(n - 1);
+  return lines;
+}
+
+}  // namespace
+
+void Reconstructor::EvaluateSlopes(const cv::Mat& diff, const cv::Mat& context, const cv::Rect& roi,
+                                   const std::vector<cv::Point>& pixels, cv::Mat* slopes) const {
+  if (pixels.empty()) return;
   Eigen::MatrixXf x(FeatureCount(options_.difference), static_cast<Eigen::Index>(pixels.size()));
   for (std::size_t i = 0; i < pixels.size(); ++i) {
     PixelFeatures(diff, context, roi.tl(), pixels[i].x, pixels[i].y,
@@ -263,8 +320,67 @@ cv::Mat Reconstructor::PredictSlopes(const cv::Mat& diff, const cv::Rect& roi) c
   const Eigen::MatrixXf y = mlp_.Forward(x);
   for (std::size_t i = 0; i < pixels.size(); ++i) {
     const auto c = static_cast<Eigen::Index>(i);
-    slopes.at<cv::Vec2f>(pixels[i].y - roi.y, pixels[i].x - roi.x) = cv::Vec2f(y(0, c), y(1, c));
+    slopes->at<cv::Vec2f>(pixels[i].y - roi.y, pixels[i].x - roi.x) = cv::Vec2f(y(0, c), y(1, c));
   }
+}
+
+cv::Mat Reconstructor::PredictSlopes(const cv::Mat& diff, const cv::Rect& roi) const {
+  cv::Mat slopes(roi.size(), CV_32FC2, cv::Scalar::all(0));
+  const cv::Mat context =
+      ContextFeatures(diff, visible_, roi, options_.difference.context_sigmas_px);
+  const int s = options_.mlp_stride;
+  if (s == 1) {
+    std::vector<cv::Point> pixels;
+    pixels.reserve(roi.area());
+    for (int v = roi.y; v < roi.y + roi.height; ++v) {
+      for (int u = roi.x; u < roi.x + roi.width; ++u) {
+        if (map_->visible(u, v)) pixels.emplace_back(u, v);
+      }
+    }
+    EvaluateSlopes(diff, context, roi, pixels, &slopes);
+    return slopes;
+  }
+  // Slopes are smooth over a few pixels: the MLP on a stride-s grid (its visible nodes), the
+  // pixels between by bilinear weights over the nodes evaluated, and the MLP again where too few
+  // of a pixel's nodes are visible (at a fin's or the view's edge).
+  const std::vector<int> xs = GridLines(roi.width, s), ys = GridLines(roi.height, s);
+  std::vector<cv::Point> nodes;
+  for (int y : ys) {
+    for (int x : xs) {
+      if (map_->visible(roi.x + x, roi.y + y)) nodes.emplace_back(roi.x + x, roi.y + y);
+    }
+  }
+  EvaluateSlopes(diff, context, roi, nodes, &slopes);
+  std::vector<cv::Point> direct;
+  for (std::size_t j = 0; j + 1 < ys.size(); ++j) {
+    for (int y = ys[j]; y <= ys[j + 1]; ++y) {
+      const float fy = static_cast<float>(y - ys[j]) / static_cast<float>(ys[j + 1] - ys[j]);
+      for (std::size_t i = 0; i + 1 < xs.size(); ++i) {
+        for (int x = xs[i]; x <= xs[i + 1]; ++x) {
+          const bool node = (x == xs[i] || x == xs[i + 1]) && (y == ys[j] || y == ys[j + 1]);
+          if (node || !map_->visible(roi.x + x, roi.y + y)) continue;
+          const float fx = static_cast<float>(x - xs[i]) / static_cast<float>(xs[i + 1] - xs[i]);
+          const int cx[2] = {xs[i], xs[i + 1]}, cy[2] = {ys[j], ys[j + 1]};
+          const float wx[2] = {1.0f - fx, fx}, wy[2] = {1.0f - fy, fy};
+          cv::Vec2f sum(0.0f, 0.0f);
+          float weight = 0.0f;
+          for (int b = 0; b < 2; ++b) {
+            for (int a = 0; a < 2; ++a) {
+              if (!map_->visible(roi.x + cx[a], roi.y + cy[b])) continue;
+              sum += wx[a] * wy[b] * slopes.at<cv::Vec2f>(cy[b], cx[a]);
+              weight += wx[a] * wy[b];
+            }
+          }
+          if (weight > 0.75f) {
+            slopes.at<cv::Vec2f>(y, x) = sum / weight;
+          } else {
+            direct.emplace_back(roi.x + x, roi.y + y);
+          }
+        }
+      }
+    }
+  }
+  EvaluateSlopes(diff, context, roi, direct, &slopes);
   return slopes;
 }
 
@@ -359,14 +475,11 @@ FrameReconstruction Reconstructor::Reconstruct(const cv::Mat& frame,
                                                const cv::Mat& reference) const {
   const auto t0 = std::chrono::steady_clock::now();
   FrameReconstruction out;
-  if (options_.screen && !MayTouch(frame, reference)) {
-    out.seconds = Seconds(t0);
-    return out;
-  }
-  const cv::Mat diff = Difference(frame, reference, &out.gain);
-  for (const ContactRegion& region : DetectContactRegions(diff, options_.detection)) {
+  const DetectedContacts detected = Detect(frame, reference);
+  out.gain = detected.gain;
+  for (const ContactRegion& region : detected.regions) {
     if (region.roi.width < 3 || region.roi.height < 3) continue;
-    out.regions.push_back(ReconstructRegion(diff, region, options_.integration));
+    out.regions.push_back(ReconstructRegion(detected.difference, region, options_.integration));
   }
   out.seconds = Seconds(t0);
   return out;

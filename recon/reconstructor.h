@@ -20,6 +20,7 @@
 
 #include <Eigen/Core>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -43,6 +44,9 @@ struct ReconstructionOptions {
   // half the detection threshold has no contact, and costs a fraction of the full difference.
   // A run-time choice, not part of a model (not serialised).
   bool screen = true;
+  // The MLP on every n-th pixel of a region in u and v, bilinear between (1: every pixel).
+  // Run-time, not serialised.
+  int mlp_stride = 1;
   // Throws std::invalid_argument naming the field (delegates to the nested Check()s).
   void Check() const;
 };
@@ -64,6 +68,13 @@ struct RegionReconstruction {
   double peak_indentation_mm = 0.0;
   double mlp_seconds = 0.0;
   double integration_seconds = 0.0;
+};
+
+struct DetectedContacts {
+  cv::Mat difference;                  // CV_32FC3 full image; empty when the screen saw nothing
+  std::vector<ContactRegion> regions;  // largest first
+  cv::Vec3d gain{1.0, 1.0, 1.0};
+  cv::Rect window;  // where the difference was computed (the whole image without the screen)
 };
 
 struct FrameReconstruction {
@@ -94,8 +105,13 @@ class Reconstructor {
   FrameReconstruction Reconstruct(const cv::Mat& frame) const;
   FrameReconstruction Reconstruct(const cv::Mat& frame, const cv::Mat& reference) const;
 
-  // The screen (ReconstructionOptions::screen): false when the frame certainly has no contact.
+  // The screen (ReconstructionOptions::screen): nullopt when the frame certainly has no contact,
+  // else the window of the image the full-resolution difference must cover.
+  std::optional<cv::Rect> ScreenWindow(const cv::Mat& frame, const cv::Mat& reference) const;
   bool MayTouch(const cv::Mat& frame, const cv::Mat& reference) const;
+  // The screen, the normalised difference inside its window (0 outside) and the contact regions
+  // found there: the first half of Reconstruct.
+  DetectedContacts Detect(const cv::Mat& frame, const cv::Mat& reference) const;
 
   // The pieces, for validation and tools:
   // CV_32FC3 normalised difference, masked to visible pixels.
@@ -116,6 +132,10 @@ class Reconstructor {
                                           double min_indentation_mm = 0.02) const;
 
  private:
+  // The MLP's slopes for `pixels` (inside roi), written into *slopes (roi-sized CV_32FC2).
+  void EvaluateSlopes(const cv::Mat& diff, const cv::Mat& context, const cv::Rect& roi,
+                      const std::vector<cv::Point>& pixels, cv::Mat* slopes) const;
+
   std::shared_ptr<const SurfaceMap> map_;
   FisheyeCamera camera_;
   Mlp mlp_;

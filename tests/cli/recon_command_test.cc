@@ -17,7 +17,10 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "cli/sim_model.h"
+#include "recon/contacts.h"
+#include "recon/model_bundle.h"
 #include "sim/tactile_camera.h"
+#include "sim/virtual_rig.h"
 
 using namespace gs360;
 using Catch::Contains;
@@ -162,4 +165,115 @@ TEST_CASE("recon refuses a truncated or foreign model and a corrupt image, namin
             (f.dir / "x").string());
   CHECK(r.status != 0);
   CHECK_THAT(r.out, Contains(broken.string()) && Contains("not a readable image"));
+}
+
+TEST_CASE(
+    "no phantom contacts: 1,000 frames without contact, noise, LED drift and slow light change",
+    "[cli][recon][phantom]") {
+  Fixture& f = Shared();
+  ModelBundle bundle = ReadModelBundle(f.model);
+  bundle.reconstruction.mlp_stride = 2;  // what `gs360 recon` runs
+  const Reconstructor recon = bundle.MakeReconstructor(2);
+  SimRigOptions so;
+  so.seed = 7;
+  TactileCameraOptions co;
+  co.sensor.drift_amplitude = 0.04;  // LED drift of up to 4 % per channel over the hours
+  TactileCamera camera(std::make_shared<const SimRig>(so), co);
+  int contacts = 0, screened = 0;
+  double deepest = 0.0;
+  for (int i = 0; i < 1000; ++i) {
+    const double hours = 8.0 * i / 1000.0;  // an overnight session, one frame every ~29 s
+    cv::Mat frame = camera.RenderReference(2000 + i, 3600.0 * hours);
+    // Slow illumination change on top: a 3 % gradient across the image that turns with time.
+    cv::Mat scale(frame.size(), CV_32FC3);
+    const double angle = 0.8 * hours;
+    for (int v = 0; v < frame.rows; ++v) {
+      for (int u = 0; u < frame.cols; ++u) {
+        const double t = (std::cos(angle) * (u - 320.0) + std::sin(angle) * (v - 240.0)) / 400.0;
+        const float s = static_cast<float>(1.0 + 0.015 * t);
+        scale.at<cv::Vec3f>(v, u) = cv::Vec3f(s, s, s);
+      }
+    }
+    cv::Mat lit;
+    frame.convertTo(lit, CV_32FC3);
+    lit = lit.mul(scale);
+    lit.convertTo(frame, CV_8UC3);
+    const FrameReconstruction r = recon.Reconstruct(frame);
+    contacts += static_cast<int>(SummarizeContacts(recon, r).size());
+    screened += !recon.MayTouch(frame, recon.reference());
+    double peak = 0.0;
+    cv::minMaxLoc(IndentationImage(recon, r), nullptr, &peak);
+    deepest = std::max(deepest, peak);
+  }
+  INFO(screened << " of 1000 frames stopped at the screen; deepest indentation " << deepest);
+  CHECK(contacts == 0);
+  CHECK(deepest <= 0.02);  // the contact threshold: no depth beyond the noise floor
+}
+
+TEST_CASE("a contact that runs behind a fin is reported as partial, one in full view is not",
+          "[cli][recon]") {
+  Fixture& f = Shared();
+  const Reconstructor recon = ReadModelBundle(f.model).MakeReconstructor(2);
+  SimRigOptions so;
+  so.seed = 7;
+  auto rig = std::make_shared<const SimRig>(so);
+  TactileCamera camera(rig);
+  const auto press = [&](double phi) {
+    const Eigen::Vector3d ball =
+        rig->profile().SurfacePoint(0.5, phi) +
+        (rig->ball_radius() - 1.0) * rig->profile().SurfaceNormal(0.5, phi);
+    return SummarizeContacts(recon, recon.Reconstruct(camera.RenderAtBall(ball, 3000, 0.0)));
+  };
+  const auto fin = press(0.06);  // the fin at phi = 0 hides part of the imprint
+  REQUIRE(fin.size() == 1);
+  CHECK(fin[0].partial);
+  const auto open = press(0.785);  // halfway between two fins
+  REQUIRE(open.size() == 1);
+  CHECK_FALSE(open[0].partial);
+  CHECK(open[0].area_mm2 > fin[0].area_mm2);
+}
+
+TEST_CASE("the screen's window gives the full path's regions and difference inside them",
+          "[cli][recon]") {
+  Fixture& f = Shared();
+  ModelBundle bundle = ReadModelBundle(f.model);
+  bundle.reconstruction.screen = false;
+  const Reconstructor full = bundle.MakeReconstructor(2);
+  bundle.reconstruction.screen = true;
+  const Reconstructor fast = bundle.MakeReconstructor(2);
+  const cv::Mat frame = cv::imread(f.contact.string(), cv::IMREAD_COLOR);
+  const DetectedContacts a = full.Detect(frame, full.reference());
+  const DetectedContacts b = fast.Detect(frame, fast.reference());
+  CHECK(a.window == cv::Rect(0, 0, 640, 480));
+  CHECK(b.window.area() < a.window.area() / 4);  // one contact: a small part of the image
+  REQUIRE(a.regions.size() == 1);
+  REQUIRE(b.regions.size() == 1);
+  CHECK(a.regions[0].roi == b.regions[0].roi);
+  CHECK(a.regions[0].area_px == b.regions[0].area_px);
+  CHECK(cv::norm(a.difference(a.regions[0].roi), b.difference(b.regions[0].roi), cv::NORM_INF) <
+        1e-6);
+  // No contact: nothing past the screen.
+  const cv::Mat empty = cv::imread(f.no_contact.string(), cv::IMREAD_COLOR);
+  CHECK(fast.Detect(empty, fast.reference()).regions.empty());
+  CHECK(fast.Detect(empty, fast.reference()).difference.empty());
+}
+
+TEST_CASE("recon --camera runs live from the virtual rig's camera and records depth",
+          "[cli][recon]") {
+  Fixture& f = Shared();
+  VirtualRigOptions options;
+  options.rig.seed = 7;
+  options.cnc.time_scale = 1.0;
+  options.frame_socket = f.dir / "live.sock";
+  VirtualRig rig(options);
+  const Result r = Gs360("--json recon --model " + f.model.string() + " --camera " +
+                         rig.FrameUri() + " --reference-frames 5 --frames 20 --record " +
+                         (f.dir / "live").string() + " < /dev/null");
+  INFO(r.out);
+  REQUIRE(r.status == 0);
+  const nlohmann::json summary = nlohmann::json::parse(r.out.substr(r.out.rfind('{')));
+  CHECK(summary.at("frames") == 20);
+  CHECK(fs::exists(f.dir / "live" / "frame-000020-depth.png"));
+  std::ifstream side(f.dir / "live" / "frame-000020-depth.json");
+  CHECK(nlohmann::json::parse(side).at("contacts").empty());  // the tool is far from the gel
 }
