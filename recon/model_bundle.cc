@@ -1,5 +1,6 @@
 #include "recon/model_bundle.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <fstream>
@@ -232,6 +233,13 @@ ModelBundle DeserializeModelBundle(std::span<const std::uint8_t> bytes, const st
     throw ModelBundleError(where + ": model bundle format " + std::to_string(format) +
                            " is newer than this gs360 reads (" +
                            std::to_string(kModelBundleFormat) + "); upgrade gs360");
+  }
+  const bool hex = std::all_of(stored.begin(), stored.end(), [](char c) {
+    return (c >= '0' && c <= '9') || (c >= 'a' && c <= 'f');
+  });
+  if (!hex) {
+    throw ModelBundleError(where + ": truncated or corrupt (the file does not end in its " +
+                           "checksum; " + std::to_string(bytes.size()) + " bytes)");
   }
   if (stored != actual) {
     throw ModelBundleError(where + ": checksum mismatch (stored " + stored + ", computed " +

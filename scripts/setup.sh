@@ -27,6 +27,7 @@ packages=(
   libonnx-dev libprotobuf-dev
   nlohmann-json3-dev libcpp-httplib-dev libcli11-dev libtomlplusplus-dev
   libsystemd-dev
+  pybind11-dev python3-dev python3-numpy
   curl
 )
 # Headless browser for the dashboard's test (tests/browser); only the test mode needs it.
