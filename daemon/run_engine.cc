@@ -169,14 +169,7 @@ std::optional<std::string> RunSession::Unsafe(const std::vector<std::string>& li
       safety_stop_ = "refused to send '" + line + "': " + *bad;
       return safety_stop_;
     }
-    // Our motion lines are "G53 G0|G1 X.. Y.. Z.." with all three axes.
-    const auto x = line.find(" X");
-    if (line.rfind("G53 G", 0) == 0 && x != std::string::npos) {
-      double v[3];
-      if (std::sscanf(line.c_str() + x, " X%lf Y%lf Z%lf", &v[0], &v[1], &v[2]) == 3) {
-        at = Eigen::Vector3d(v[0], v[1], v[2]);
-      }
-    }
+    if (const auto target = session::MotionTarget(line)) at = *target;
   }
   return std::nullopt;
 }

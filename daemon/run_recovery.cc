@@ -242,12 +242,7 @@ void RunSession::BackOutOfGel() {
 void RunSession::Commanded(const std::vector<std::string>& lines, const Eigen::Vector3d& from) {
   std::vector<Eigen::Vector3d> targets;
   for (const std::string& line : lines) {
-    const auto x = line.find(" X");
-    double v[3];
-    if (line.rfind("G53 G", 0) == 0 && x != std::string::npos &&
-        std::sscanf(line.c_str() + x, " X%lf Y%lf Z%lf", &v[0], &v[1], &v[2]) == 3) {
-      targets.emplace_back(v[0], v[1], v[2]);
-    }
+    if (const auto target = session::MotionTarget(line)) targets.push_back(*target);
   }
   if (targets.empty()) return;
   // Until a sync shows where the controller stands, it may stand at any point sent since: a

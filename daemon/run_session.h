@@ -4,6 +4,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <memory>
 #include <optional>
 #include <string>
@@ -24,6 +25,18 @@ namespace session {
 using Clock = std::chrono::steady_clock;
 
 std::string Fmt3(const Eigen::Vector3d& v);
+
+// The machine position a motion line of ours sends the tool to ("G53 G0|G1 X.. Y.. Z..", all
+// three axes); nullopt for any other line.
+inline std::optional<Eigen::Vector3d> MotionTarget(const std::string& line) {
+  const auto x = line.find(" X");
+  double v[3];
+  if (line.rfind("G53 G", 0) != 0 || x == std::string::npos ||
+      std::sscanf(line.c_str() + x, " X%lf Y%lf Z%lf", &v[0], &v[1], &v[2]) != 3) {
+    return std::nullopt;
+  }
+  return Eigen::Vector3d(v[0], v[1], v[2]);
+}
 
 inline std::chrono::milliseconds Ms(double seconds) {
   return std::chrono::milliseconds(static_cast<long long>(std::ceil(seconds * 1000.0)));
