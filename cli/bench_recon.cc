@@ -137,36 +137,64 @@ double Throughput(const Reconstructor& r, const cv::Mat& frame, int threads, dou
   return total / Since(t0);
 }
 
-// Depth error (mm, along the gel's normal) of every reconstructed pixel against the rigid
-// imprint of the true balls, as the calibration's validation measures it: along a pixel's ray the
-// surface is the nearer of the undeformed gel and the ball's near side.
+// The pixels both paths are judged on: every region either of them reconstructed. A pixel outside
+// a path's own regions counts as undeformed gel there, so a smaller region is not flattered by
+// leaving out the imprint's edge.
+cv::Mat JudgedPixels(const SurfaceMap& map, const FrameReconstruction& a,
+                     const FrameReconstruction& b) {
+  cv::Mat mask(map.height(), map.width(), CV_8U, cv::Scalar::all(0));
+  for (const FrameReconstruction* rec : {&a, &b}) {
+    for (const RegionReconstruction& reg : rec->regions) mask(reg.region.roi).setTo(1);
+  }
+  return mask;
+}
+
+// Each pixel's distance along its ray as `rec` gives it: a region's rho, else the undeformed gel.
+cv::Mat RhoOf(const SurfaceMap& map, const FrameReconstruction& rec) {
+  cv::Mat rho(map.height(), map.width(), CV_64F);
+  for (int v = 0; v < map.height(); ++v) {
+    for (int u = 0; u < map.width(); ++u) rho.at<double>(v, u) = map.rho0(u, v);
+  }
+  for (const RegionReconstruction& reg : rec.regions) {
+    const cv::Rect& roi = reg.region.roi;
+    for (int y = 0; y < roi.height; ++y) {
+      for (int x = 0; x < roi.width; ++x) {
+        const double r = reg.rho.at<double>(y, x);
+        if (std::isfinite(r)) rho.at<double>(roi.y + y, roi.x + x) = r;
+      }
+    }
+  }
+  return rho;
+}
+
+// Depth error (mm, along the gel's normal) of the judged pixels against the rigid imprint of the
+// true balls, as the calibration's validation measures it: along a pixel's ray the surface is the
+// nearer of the undeformed gel and the ball's near side.
 Json Accuracy(const Reconstructor& r, const FrameReconstruction& rec, const Scene& scene,
-              double ball_radius) {
+              double ball_radius, const cv::Mat& judged) {
   const SurfaceMap& map = r.map();
   std::vector<Eigen::Vector3d> centres;
   double true_peak = 0.0;
   for (const Eigen::Vector3d& b : scene.balls) centres.push_back(map.cam_from_sensor() * b);
+  const cv::Mat rho_of = RhoOf(map, rec);
   double sum = 0.0, worst = 0.0;
   std::size_t n = 0;
-  for (const RegionReconstruction& reg : rec.regions) {
-    for (int y = 0; y < reg.region.roi.height; ++y) {
-      for (int x = 0; x < reg.region.roi.width; ++x) {
-        const int u = reg.region.roi.x + x, v = reg.region.roi.y + y;
-        const double rho = reg.rho.at<double>(y, x);
-        if (!std::isfinite(rho) || !map.visible(u, v)) continue;
-        const Eigen::Vector3d d = map.ray(u, v);
-        double truth = map.rho0(u, v);
-        for (const Eigen::Vector3d& c : centres) {
-          const double b = d.dot(c), disc = b * b - (c.squaredNorm() - ball_radius * ball_radius);
-          if (disc > 0.0) truth = std::min(truth, b - std::sqrt(disc));
-        }
-        const double cosine = std::abs(d.dot(map.normal0(u, v)));
-        true_peak = std::max(true_peak, (map.rho0(u, v) - truth) * cosine);
-        const double error = std::abs(rho - truth) * cosine;
-        sum += error;
-        worst = std::max(worst, error);
-        ++n;
+  for (int v = 0; v < map.height(); ++v) {
+    for (int u = 0; u < map.width(); ++u) {
+      const double rho = rho_of.at<double>(v, u);
+      if (!judged.at<std::uint8_t>(v, u) || !std::isfinite(rho) || !map.visible(u, v)) continue;
+      const Eigen::Vector3d d = map.ray(u, v);
+      double truth = map.rho0(u, v);
+      for (const Eigen::Vector3d& c : centres) {
+        const double b = d.dot(c), disc = b * b - (c.squaredNorm() - ball_radius * ball_radius);
+        if (disc > 0.0) truth = std::min(truth, b - std::sqrt(disc));
       }
+      const double cosine = std::abs(d.dot(map.normal0(u, v)));
+      true_peak = std::max(true_peak, (map.rho0(u, v) - truth) * cosine);
+      const double error = std::abs(rho - truth) * cosine;
+      sum += error;
+      worst = std::max(worst, error);
+      ++n;
     }
   }
   const auto points = r.PointCloud(rec);
@@ -199,8 +227,10 @@ Json MeasureScene(const Reconstructor& recon, const Reconstructor& full, const S
   const double n = t.frames;
   const double one = Throughput(recon, scene.frame, 1, seconds);
   const double two = Throughput(recon, scene.frame, 2, seconds);
-  const Json fast = Accuracy(recon, last, scene, ball_radius);
-  const Json reference = Accuracy(full, full.Reconstruct(scene.frame), scene, ball_radius);
+  const FrameReconstruction reference_rec = full.Reconstruct(scene.frame);
+  const cv::Mat judged = JudgedPixels(recon.map(), last, reference_rec);
+  const Json fast = Accuracy(recon, last, scene, ball_radius, judged);
+  const Json reference = Accuracy(full, reference_rec, scene, ball_radius, judged);
   const double fast_mean = fast["mean_error_mm"], full_mean = reference["mean_error_mm"];
   return Json{{"scene", scene.name},
               {"ms",
