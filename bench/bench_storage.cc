@@ -113,27 +113,17 @@ int main(int argc, char** argv) {
   std::printf("single thread (cv::setNumThreads(1)); pin with taskset -c 0 for one core\n\n");
 
   // ---- PNG encoding alone ----
-  using E = PngEncoder;
   const std::vector<Setting> settings = {
-      {"built-in, Average filter [default]", {}, 64},
-      {"built-in, Sub filter", {.filter = PngFilter::kSub}, 64},
-      {"built-in, Up filter", {.filter = PngFilter::kUp}, 64},
-      {"built-in, Paeth filter", {.filter = PngFilter::kPaeth}, 64},
-      {"built-in, no filter", {.filter = PngFilter::kNone}, 64},
-      {"OpenCV fast path (Sub, zlib 1) + huffman-only",
-       {.encoder = E::kOpenCv, .strategy = PngStrategy::kHuffmanOnly},
-       32},
-      {"OpenCV fast path (Sub, zlib 1) + RLE [OpenCV default]",
-       {.encoder = E::kOpenCv, .strategy = PngStrategy::kRle},
-       32},
-      {"OpenCV zlib 1, adaptive filters, huffman-only",
-       {.encoder = E::kOpenCv, .compression_level = 1, .strategy = PngStrategy::kHuffmanOnly},
+      {"fast path (Sub, zlib 1) + huffman-only [default]", {}, 32},
+      {"fast path (Sub, zlib 1) + RLE [OpenCV default]", {.strategy = PngStrategy::kRle}, 32},
+      {"zlib 1, adaptive filters, huffman-only",
+       {.compression_level = 1, .strategy = PngStrategy::kHuffmanOnly},
        16},
-      {"OpenCV zlib 1, adaptive filters, default strategy",
-       {.encoder = E::kOpenCv, .compression_level = 1, .strategy = PngStrategy::kDefault},
+      {"zlib 1, adaptive filters, default strategy",
+       {.compression_level = 1, .strategy = PngStrategy::kDefault},
        16},
-      {"OpenCV zlib 6, adaptive filters, default strategy",
-       {.encoder = E::kOpenCv, .compression_level = 6, .strategy = PngStrategy::kDefault},
+      {"zlib 6, adaptive filters, default strategy",
+       {.compression_level = 6, .strategy = PngStrategy::kDefault},
        4},
   };
 

@@ -30,14 +30,6 @@ int OpenCvStrategy(PngStrategy s) {
 }  // namespace
 
 void PngOptions::Check() const {
-  if (encoder != PngEncoder::kBuiltin && encoder != PngEncoder::kOpenCv) {
-    throw std::invalid_argument("PngOptions.encoder: unknown value " +
-                                std::to_string(static_cast<int>(encoder)));
-  }
-  if (static_cast<int>(filter) < 0 || static_cast<int>(filter) > 4) {
-    throw std::invalid_argument("PngOptions.filter: unknown value " +
-                                std::to_string(static_cast<int>(filter)));
-  }
   if (compression_level < -1 || compression_level > 9) {
     throw std::invalid_argument(
         "PngOptions.compression_level must be -1 (fast path) or 0..9, got " +
@@ -61,10 +53,6 @@ EncodedFrame EncodeFrame(const cv::Mat& image, const PngOptions& options) {
   out.height = image.rows;
   out.channels = channels;
   out.bit_depth = depth == CV_8U ? 8 : 16;
-  if (options.encoder == PngEncoder::kBuiltin) {
-    out.png = WritePng(image, options.filter);
-    return out;
-  }
   // OpenCV switches to adaptive filtering as soon as IMWRITE_PNG_COMPRESSION is given, so the
   // level is passed only when the caller asked for one.
   std::vector<int> params;

@@ -200,8 +200,7 @@ TEST_CASE("CommitCapture stores the frame, the position and the state together",
     CHECK(test::SameImage(db.LoadFrame(f), deep));
   }
   SECTION("a frame encoded ahead of time commits the same way") {
-    const EncodedFrame encoded =
-        EncodeFrame(image, {.encoder = PngEncoder::kOpenCv, .compression_level = 9});
+    const EncodedFrame encoded = EncodeFrame(image, {.compression_level = 9});
     const std::int64_t f = db.CommitCapture(ids[2], encoded, Report(3000));
     CHECK(db.LoadFramePng(f) == encoded.png);
     CHECK(test::SameImage(db.LoadFrame(f), image));
