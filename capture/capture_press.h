@@ -1,9 +1,9 @@
 #pragma once
 // Capturing one press: K fresh frames after the machine's sync `ok`, averaged.
 //
-// The sync rule (DESIGN.md, "Stream"): the `ok` of the press's `G4 P<settle>` arrives only after
-// the ball has stopped, so a frame whose exposure began after that `ok` shows the settled press;
-// anything exposed earlier may show the ball still moving. CapturePress therefore discards
+// The sync rule (docs/design.md, "Stream"): the `ok` of the press's `G4 P<settle>` arrives only
+// after the ball has stopped, so a frame whose exposure began after that `ok` shows the settled
+// press; anything exposed earlier may show the ball still moving. CapturePress therefore discards
 // every frame with ExposureStart() <= sync_ok (for sources that do not know the exposure, that is
 // timestamp <= sync_ok) and averages the next K frames to cut sensor noise by sqrt(K).
 //

@@ -1,6 +1,6 @@
 #pragma once
 // Integration of slopes as a height field over the undeformed gel surface: the reconstruction's
-// answer to occlusion (../shared/DESIGN.md, "Reconstruction").
+// answer to occlusion (docs/design.md, "Reconstruction").
 //
 // Seen from the base camera, an imprint in the side wall is a bump that hides the wall behind
 // it: along a pixel's ray the deformed distance rho jumps at the occluding contour, and no normal

@@ -1,7 +1,7 @@
 #pragma once
 // From surface normals to distance along the rays, for a curved sensor seen by a central camera
-// (DESIGN.md "Reconstruction"). With d(u, v) the unit ray and rho the distance along it to the
-// (deformed) surface, x = rho d, and n the surface normal there:
+// (docs/design.md, "Reconstruction"). With d(u, v) the unit ray and rho the distance along it to
+// the (deformed) surface, x = rho d, and n the surface normal there:
 //     d(log rho)/du = -(n.d_u)/(n.d),   d(log rho)/dv = -(n.d_v)/(n.d)      (exact)
 // We integrate psi = log rho - log rho0 (rho0 the undeformed surface's distance, from the surface
 // map), whose gradient is the formula above minus the same formula with n0, on a rectangular

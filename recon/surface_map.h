@@ -27,7 +27,7 @@
 // ray leaves through the base opening or misses), kFin (a fin is hit before the gel, or the pixel
 // is within fin_margin_px of such a pixel), kGrazing (view angle > max_view_angle_deg), kVisible.
 //
-// Slopes (DESIGN.md "render"): a deformed normal n at a visible pixel is described by
+// Slopes (docs/design.md, "Render"): a deformed normal n at a visible pixel is described by
 // gx = (n.t1)/(n.n0), gy = (n.t2)/(n.n0), and recovered as n = normalise(n0 + gx t1 + gy t2).
 //
 // Thread safety: immutable after Build/Deserialize; const methods may be called from any thread.

@@ -3,9 +3,9 @@
 // bench/bench_integration.cc): a rigid ball pressed into a surface seen through a surface map.
 // Header-only, test and bench code only.
 //
-// The truth is the rigid imprint (DESIGN.md "render"): for a visible pixel with ray d, the ball
-// (centre c, radius r, camera frame) entered at t_b < rho0 means contact: x = t_b d and the gel's
-// outward normal is n = (c - x) / r; elsewhere x = rho0 d and n = n0.
+// The truth is the rigid imprint (docs/design.md, "Render"): for a visible pixel with ray d, the
+// ball (centre c, radius r, camera frame) entered at t_b < rho0 means contact: x = t_b d and the
+// gel's outward normal is n = (c - x) / r; elsewhere x = rho0 d and n = n0.
 
 #include <Eigen/Core>
 #include <algorithm>

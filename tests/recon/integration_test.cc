@@ -263,7 +263,7 @@ TEST_CASE("Oblique cylinder wall: the discontinuity-aware integrator beats Poiss
       }
     }
   }
-  // Over the oblique scenes: at least 2x better point-to-surface (DESIGN.md's measure). Along
+  // Over the oblique scenes: at least 2x better point-to-surface distance. Along
   // the ray it is ~1.96x on this set, short of the 2x goal (an open item): 1.8x is asserted.
   REQUIRE(sum_d_p2s * 2.0 <= sum_p_p2s);
   REQUIRE(sum_d_rho * 1.8 <= sum_p_rho);
