@@ -267,15 +267,13 @@ std::string MeshReport::Summary() const {
   return os.str();
 }
 
-MeshReport ValidateAndRepair(TriangleMesh& mesh, const MeshRepairOptions& options) {
-  options.Check();
-  MeshReport r;
-  r.input_vertices = mesh.NumVertices();
-  r.input_triangles = mesh.NumTriangles();
+namespace {
+
+// Step 1: triangles with an index out of range (always removed: nothing else can be done with
+// them).
+bool RemoveInvalidIndices(TriangleMesh& mesh, MeshReport& r) {
   bool changed = false;
   const int nv = mesh.NumVertices();
-
-  // 1. Invalid indices (always removed: nothing else can be done with them).
   {
     std::vector<Eigen::Vector3i> kept;
     kept.reserve(mesh.triangles.size());
@@ -295,8 +293,13 @@ MeshReport ValidateAndRepair(TriangleMesh& mesh, const MeshRepairOptions& option
       changed = true;
     }
   }
+  return changed;
+}
 
-  // 2. NaN / Inf vertices.
+// Step 2: NaN / Inf vertices and the triangles using them.
+bool RemoveNonFinite(TriangleMesh& mesh, const MeshRepairOptions& options, MeshReport& r) {
+  bool changed = false;
+  const int nv = mesh.NumVertices();
   {
     std::vector<char> bad(nv, 0);
     for (int i = 0; i < nv; ++i) {
@@ -325,8 +328,13 @@ MeshReport ValidateAndRepair(TriangleMesh& mesh, const MeshRepairOptions& option
       }
     }
   }
+  return changed;
+}
 
-  // 3. Weld coincident vertices (non-finite ones are never welded).
+// Step 3: weld coincident vertices (non-finite ones are never welded).
+bool Weld(TriangleMesh& mesh, const MeshRepairOptions& options, MeshReport& r) {
+  bool changed = false;
+  const int nv = mesh.NumVertices();
   if (options.weld) {
     std::vector<int> finite_ids;
     std::vector<Eigen::Vector3d> finite_pts;
@@ -353,8 +361,12 @@ MeshReport ValidateAndRepair(TriangleMesh& mesh, const MeshRepairOptions& option
       changed = true;
     }
   }
+  return changed;
+}
 
-  // 4. Degenerate triangles (repeated vertex or zero area).
+// Step 4: degenerate triangles (repeated vertex or zero area).
+bool RemoveDegenerate(TriangleMesh& mesh, const MeshRepairOptions& options, MeshReport& r) {
+  bool changed = false;
   {
     std::vector<Eigen::Vector3i> kept;
     kept.reserve(mesh.triangles.size());
@@ -386,8 +398,12 @@ MeshReport ValidateAndRepair(TriangleMesh& mesh, const MeshRepairOptions& option
       }
     }
   }
+  return changed;
+}
 
-  // 5. Duplicate triangles (same vertex set, either winding); the first occurrence is kept.
+// Step 5: duplicate triangles (same vertex set, either winding); the first occurrence is kept.
+bool RemoveDuplicates(TriangleMesh& mesh, const MeshRepairOptions& options, MeshReport& r) {
+  bool changed = false;
   {
     const int nt = mesh.NumTriangles();
     std::vector<std::array<int, 4>> keys(nt);
@@ -420,8 +436,12 @@ MeshReport ValidateAndRepair(TriangleMesh& mesh, const MeshRepairOptions& option
       }
     }
   }
+  return changed;
+}
 
-  // 6. Unreferenced vertices (compacts the vertex array, keeping the order).
+// Step 6: unreferenced vertices (compacts the vertex array, keeping the order).
+bool RemoveUnreferenced(TriangleMesh& mesh, const MeshRepairOptions& options, MeshReport& r) {
+  bool changed = false;
   if (options.remove_unreferenced) {
     std::vector<int> remap(mesh.vertices.size(), -1);
     for (const auto& f : mesh.triangles)
@@ -451,8 +471,20 @@ MeshReport ValidateAndRepair(TriangleMesh& mesh, const MeshRepairOptions& option
       changed = true;
     }
   }
+  return changed;
+}
 
-  // 7. Edge topology: boundary and non-manifold edges, components, winding consistency.
+// The triangles' edge topology: manifold adjacency with relative winding, and components.
+struct Topology {
+  int triangles = 0;
+  // Adjacency over manifold edges: (neighbour, same_direction).
+  std::vector<std::array<std::pair<int, bool>, 3>> adjacency;
+  std::vector<int> adjacency_count;
+  std::vector<int> comp_of;  // component of each triangle
+};
+
+// Step 7: boundary and non-manifold edges, manifold adjacency and components.
+Topology EdgeTopology(const TriangleMesh& mesh, const MeshRepairOptions& options, MeshReport& r) {
   const int nt = mesh.NumTriangles();
   std::vector<EdgeUse> uses = SortedEdgeUses(mesh.triangles);
   DisjointSets components(nt);
@@ -504,8 +536,18 @@ MeshReport ValidateAndRepair(TriangleMesh& mesh, const MeshRepairOptions& option
     }
   }
   r.components = static_cast<int>(comp_roots.size());
+  return Topology{nt, std::move(adjacency), std::move(adjacency_count), std::move(comp_of)};
+}
 
-  // Consistent winding: BFS per component from its lowest triangle over manifold edges.
+// Step 7, continued: consistent winding, BFS per component from its lowest triangle over
+// manifold edges.
+bool MakeWindingConsistent(TriangleMesh& mesh, const MeshRepairOptions& options,
+                           const Topology& topo, MeshReport& r) {
+  bool changed = false;
+  const int nt = topo.triangles;
+  const auto& adjacency = topo.adjacency;
+  const auto& adjacency_count = topo.adjacency_count;
+  const auto& comp_of = topo.comp_of;
   if (options.make_consistent && nt > 0) {
     std::vector<int> flip(nt, -1);
     std::vector<int> queue;
@@ -566,8 +608,15 @@ MeshReport ValidateAndRepair(TriangleMesh& mesh, const MeshRepairOptions& option
     r.problems.push_back(Plural(r.inconsistent_edges, "edge has", "edges have") +
                          " inconsistent winding that cannot be fixed (non-orientable surface)");
   }
+  return changed;
+}
 
-  // 8. Outward orientation per component (signed volume w.r.t. the base plane).
+// Step 8: outward orientation per component (signed volume w.r.t. the base plane).
+bool OrientOutward(TriangleMesh& mesh, const MeshRepairOptions& options, const Topology& topo,
+                   MeshReport& r) {
+  bool changed = false;
+  const int nt = topo.triangles;
+  const auto& comp_of = topo.comp_of;
   {
     std::vector<double> volume(r.components, 0.0);
     std::vector<int> size(r.components, 0);
@@ -601,7 +650,26 @@ MeshReport ValidateAndRepair(TriangleMesh& mesh, const MeshRepairOptions& option
       }
     }
   }
+  return changed;
+}
 
+}  // namespace
+
+MeshReport ValidateAndRepair(TriangleMesh& mesh, const MeshRepairOptions& options) {
+  options.Check();
+  MeshReport r;
+  r.input_vertices = mesh.NumVertices();
+  r.input_triangles = mesh.NumTriangles();
+  bool changed = RemoveInvalidIndices(mesh, r);
+  changed |= RemoveNonFinite(mesh, options, r);
+  changed |= Weld(mesh, options, r);
+  changed |= RemoveDegenerate(mesh, options, r);
+  changed |= RemoveDuplicates(mesh, options, r);
+  changed |= RemoveUnreferenced(mesh, options, r);
+  const Topology topo = EdgeTopology(mesh, options, r);
+  changed |= MakeWindingConsistent(mesh, options, topo, r);
+  changed |= OrientOutward(mesh, options, topo, r);
+  const int nt = topo.triangles;
   if (r.boundary_edges_off_base > 0) {
     std::ostringstream os;
     os << "not closed: " << Plural(r.boundary_edges_off_base, "boundary edge", "boundary edges")
