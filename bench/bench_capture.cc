@@ -8,13 +8,12 @@
 
 #include <chrono>
 #include <cstdio>
-#include <cstdlib>
-#include <cstring>
 #include <deque>
 #include <filesystem>
 #include <sstream>
 #include <string>
 
+#include <CLI/CLI.hpp>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -68,18 +67,13 @@ cv::Mat RandomImage(cv::Size size) {
 
 int main(int argc, char** argv) {
   int width = 640, height = 480, frames = 200;
-  for (int i = 1; i + 1 < argc; i += 2) {
-    if (!std::strcmp(argv[i], "--width"))
-      width = std::atoi(argv[i + 1]);
-    else if (!std::strcmp(argv[i], "--height"))
-      height = std::atoi(argv[i + 1]);
-    else if (!std::strcmp(argv[i], "--frames"))
-      frames = std::atoi(argv[i + 1]);
-    else {
-      std::fprintf(stderr, "usage: %s [--width W] [--height H] [--frames N]\n", argv[0]);
-      return 2;
-    }
-  }
+  CLI::App app("bench_capture: CapturePress averaging cost and replay (PNG decode) throughput");
+  app.option_defaults()->always_capture_default();
+  app.add_option("--width", width, "frame width, pixels")->check(CLI::PositiveNumber);
+  app.add_option("--height", height, "frame height, pixels")->check(CLI::PositiveNumber);
+  app.add_option("--frames", frames, "frames per CapturePress setting and replayed from disk")
+      ->check(CLI::PositiveNumber);
+  CLI11_PARSE(app, argc, argv);
   const cv::Size size(width, height);
   cv::theRNG().state = 1;
   std::vector<cv::Mat> images;

@@ -13,12 +13,13 @@
 #include <atomic>
 #include <chrono>
 #include <cstdio>
-#include <cstdlib>
+#include <limits>
 #include <string>
 #include <thread>
 #include <vector>
 
 #include <spdlog/spdlog.h>
+#include <CLI/CLI.hpp>
 
 #include "gcode/grbl_client.h"
 #include "gcode/grbl_messages.h"
@@ -88,8 +89,14 @@ double Percentile(std::vector<double> v, double q) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  int lines = 20000;
+  CLI::App app(
+      "bench_gcode_stream: GRBL line parsing rate, pty streaming throughput and round trip");
+  app.option_defaults()->always_capture_default();
+  app.add_option("lines", lines, "lines streamed through the pty")
+      ->transform(CLI::Bound(100, std::numeric_limits<int>::max()).description("raised to >= 100"));
+  CLI11_PARSE(app, argc, argv);
   spdlog::set_level(spdlog::level::warn);
-  const int lines = argc > 1 ? std::max(100, std::atoi(argv[1])) : 20000;
 
   // 1. Parsing.
   const std::vector<std::string> samples = {

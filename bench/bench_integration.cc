@@ -1,5 +1,5 @@
-// Log-distance integration on the synthetic cylinder-wall scene (DESIGN.md "Reconstruction"): a
-// rigid 2 mm ball pressed `depth` mm into a 10 mm-radius wall, seen by the default 160-degree
+// Log-distance integration on the synthetic cylinder-wall scene (docs/design.md, "Reconstruction"):
+// a rigid 2 mm ball pressed `depth` mm into a 10 mm-radius wall, seen by the default 160-degree
 // fisheye on the axis at z = -1.5 mm, exact normals, no noise. Per view-angle band, the mean
 // errors of plain Poisson, of the discontinuity-aware integrator and of the height field
 // (recon/height_field.h; --hf-init starts it from the Poisson solution, as the Reconstructor
@@ -12,12 +12,12 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
-#include <cstdlib>
-#include <cstring>
 #include <map>
 #include <numbers>
 #include <string>
 #include <vector>
+
+#include <CLI/CLI.hpp>
 
 #include "geometry/bvh.h"
 #include "geometry/shapes.h"
@@ -49,31 +49,22 @@ int main(int argc, char** argv) {
   IntegrationOptions da;
   HeightFieldOptions hf;
   bool hf_init = false;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    auto value = [&]() { return i + 1 < argc ? std::atof(argv[++i]) : -1.0; };
-    if (a == "--depth") {
-      depth = value();
-    } else if (a == "--iterations") {
-      da.iterations = static_cast<int>(value());
-    } else if (a == "--sharpness") {
-      da.sharpness = value();
-    } else if (a == "--scale") {
-      da.scale = value();
-    } else if (a == "--hf-iterations") {
-      hf.iterations = static_cast<int>(value());
-    } else if (a == "--hf-init") {
-      hf_init = true;
-    } else if (a == "--verbose") {
-      verbose = true;
-    } else {
-      std::fprintf(stderr,
-                   "usage: %s [--depth MM] [--iterations N] [--sharpness S]"
-                   "[--scale S] [--verbose]\n",
-                   argv[0]);
-      return 2;
-    }
-  }
+  CLI::App app(
+      "bench_integration: plain Poisson vs discontinuity-aware vs height-field integration "
+      "errors per view-angle band on the cylinder-wall scene, and surface map build time");
+  app.option_defaults()->always_capture_default();
+  app.add_option("--depth", depth, "press depth of the 2 mm ball into the wall, mm");
+  app.add_option("--iterations", da.iterations, "discontinuity-aware re-weighting passes")
+      ->check(CLI::Range(1, 1000));
+  app.add_option("--sharpness", da.sharpness, "slope of the discontinuity-aware weights' sigmoid")
+      ->check(CLI::PositiveNumber);
+  app.add_option("--scale", da.scale, "discontinuity-aware residual scale (psi per pixel)")
+      ->check(CLI::PositiveNumber);
+  app.add_option("--hf-iterations", hf.iterations, "height-field passes")
+      ->check(CLI::Range(1, 100));
+  app.add_flag("--hf-init", hf_init, "start the height field from the Poisson solution");
+  app.add_flag("--verbose", verbose, "print one line per press");
+  CLI11_PARSE(app, argc, argv);
   da.Check();
   const FisheyeCamera camera;
   const Rigid3d cam_from_sensor(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0, 0, 1.5));

@@ -16,8 +16,6 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
-#include <cstdlib>
-#include <cstring>
 #include <memory>
 #include <numbers>
 #include <optional>
@@ -25,6 +23,8 @@
 #include <string>
 #include <thread>
 #include <vector>
+
+#include <CLI/CLI.hpp>
 
 #include "calib/impression_centroid.h"
 #include "calib/intrinsics.h"
@@ -216,45 +216,57 @@ void BenchRender(const gs360::SimRig& rig) {
   std::printf("  (surface map build: %.3f s)\n", map_s);
 }
 
-}  // namespace
+struct Args {
+  std::string shape = "cylinder";
+  int probes = 2000;
+  double depth = 1.0;
+  std::uint64_t seed = 1;
+  bool calibrated = false, render_only = false, weighted = false;
+};
 
-int main(int argc, char** argv) {
+// Accepts what gs360::ParseSensorShape accepts; its message otherwise.
+CLI::Validator SensorShapeCheck() {
+  return CLI::Validator(
+      [](const std::string& name) {
+        try {
+          gs360::ParseSensorShape(name);
+          return std::string();
+        } catch (const std::exception& e) {
+          return std::string(e.what());
+        }
+      },
+      "cylinder|cone|spline");
+}
+
+void AddOptions(CLI::App& app, Args& args) {
+  app.option_defaults()->always_capture_default();
+  app.add_option("--shape", args.shape, "sensor shape of the virtual rig")
+      ->check(SensorShapeCheck());
+  app.add_option("--probes", args.probes, "probes pressed for the pose estimate")
+      ->check(CLI::PositiveNumber);
+  app.add_option("--depth", args.depth, "press depth, mm");
+  app.add_option("--seed", args.seed, "seed of the probe sampling and of the pose estimate");
+  app.add_flag("--calibrated-intrinsics", args.calibrated,
+               "use intrinsics calibrated on 20 simulated checkerboards, not the true ones");
+  app.add_flag("--render-only", args.render_only, "only the RenderProbe speed, no pose");
+  app.add_flag("--weighted", args.weighted,
+               "estimate the pose from the weighted centroids instead of the hull ones");
+}
+
+int Run(const Args& args) {
   try {
-    std::string shape = "cylinder";
-    int probes = 2000;
-    double depth = 1.0;
-    std::uint64_t seed = 1;
-    bool calibrated = false, render_only = false, use_hull = true;
-    for (int i = 1; i < argc; ++i) {
-      const std::string a = argv[i];
-      auto next = [&]() -> const char* {
-        if (i + 1 >= argc) throw std::invalid_argument("missing value after " + a);
-        return argv[++i];
-      };
-      if (a == "--shape")
-        shape = next();
-      else if (a == "--probes")
-        probes = std::atoi(next());
-      else if (a == "--depth")
-        depth = std::atof(next());
-      else if (a == "--seed")
-        seed = std::strtoull(next(), nullptr, 10);
-      else if (a == "--calibrated-intrinsics")
-        calibrated = true;
-      else if (a == "--render-only")
-        render_only = true;
-      else if (a == "--weighted")
-        use_hull = false;
-      else
-        throw std::invalid_argument("unknown argument " + a);
-    }
+    const std::string& shape = args.shape;
+    const int probes = args.probes;
+    const double depth = args.depth;
+    const std::uint64_t seed = args.seed;
+    const bool calibrated = args.calibrated, use_hull = !args.weighted;
     gs360::SimRigOptions rig_options;
     rig_options.rig.shape.shape = gs360::ParseSensorShape(shape);
     auto rig = std::make_shared<gs360::SimRig>(rig_options);
     std::printf("bench_pose: %s, %d probes, press %.2f mm, seed %llu\n", shape.c_str(), probes,
                 depth, static_cast<unsigned long long>(seed));
     BenchRender(*rig);
-    if (render_only) return 0;
+    if (args.render_only) return 0;
 
     const Capture cap = CaptureProbes(rig, SampleProbes(*rig, probes, seed), depth, 2, use_hull);
     std::printf("  captured %zu impressions (%d without one) in %.1f s\n", cap.observations.size(),
@@ -294,4 +306,16 @@ int main(int argc, char** argv) {
     return 1;
   }
   return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  Args args;
+  CLI::App app(
+      "bench_pose: RenderProbe speed and camera pose from simulated impressions (RANSAC PnP vs "
+      "the refinement with the bias model) on the virtual rig");
+  AddOptions(app, args);
+  CLI11_PARSE(app, argc, argv);
+  return Run(args);
 }

@@ -16,7 +16,6 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
-#include <cstdlib>
 #include <fstream>
 #include <map>
 #include <memory>
@@ -27,6 +26,7 @@
 #include <thread>
 #include <vector>
 
+#include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -138,51 +138,47 @@ void PrintPose(const char* name, const PoseResult& r, const Rigid3d& truth) {
       r.oblique, r.view_bound_deg, r.mean_bias_px, r.seconds);
 }
 
-}  // namespace
+struct Args {
+  std::string db_path, cache, csv;
+  std::int64_t run_id = 1;
+  std::uint64_t seed = 1;
+  bool simulate = false;
+  std::vector<int> dump;
+  ImpressionCentroidOptions impression;
+};
 
-int main(int argc, char** argv) {
+void AddOptions(CLI::App& app, Args& args) {
+  app.option_defaults()->always_capture_default();
+  app.add_option("--db", args.db_path, "the run database (RUN.db)")
+      ->required()
+      ->check(CLI::ExistingFile);
+  app.add_option("--run", args.run_id, "run id in the database");
+  app.add_option("--seed", args.seed, "seed of the simulated rig (as the run was made)");
+  app.add_option("--cache", args.cache,
+                 "per-probe measurements cache, read if valid, else written");
+  app.add_option("--csv", args.csv, "write one row per probe to this CSV file");
+  app.add_flag("--simulate", args.simulate,
+               "also render each press straight from the simulator (TactileCamera::RenderAtBall)");
+  ImpressionCentroidOptions& impression = args.impression;
+  app.add_option("--fraction", impression.threshold_fraction,
+                 "impression region: pixels above this fraction of the peak")
+      ->check(CLI::Range(0.0, 1.0));
+  app.add_option("--min-dn", impression.min_threshold_dn, "impression noise floor, DN")
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--blur", impression.blur_sigma_px, "blur of the difference magnitude, pixels")
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--dump", args.dump,
+                 "write pose_dump_PLAN_INDEX.png around this probe's impression (repeatable)");
+}
+
+int Run(const Args& args) {
   try {
-    std::string db_path, cache, csv;
-    std::int64_t run_id = 1;
-    std::uint64_t seed = 1;
-    bool simulate = false;
-    std::vector<int> dump;
-    ImpressionCentroidOptions impression;
-    for (int i = 1; i < argc; ++i) {
-      const std::string a = argv[i];
-      auto next = [&]() -> const char* {
-        if (i + 1 >= argc) throw std::invalid_argument("missing value after " + a);
-        return argv[++i];
-      };
-      if (a == "--db")
-        db_path = next();
-      else if (a == "--run")
-        run_id = std::atoll(next());
-      else if (a == "--seed")
-        seed = std::strtoull(next(), nullptr, 10);
-      else if (a == "--cache")
-        cache = next();
-      else if (a == "--csv")
-        csv = next();
-      else if (a == "--simulate")
-        simulate = true;
-      else if (a == "--fraction")
-        impression.threshold_fraction = std::atof(next());
-      else if (a == "--min-dn")
-        impression.min_threshold_dn = std::atof(next());
-      else if (a == "--blur")
-        impression.blur_sigma_px = std::atof(next());
-      else if (a == "--dump")
-        dump.push_back(std::atoi(next()));
-      else if (a == "--help" || a == "-h") {
-        std::printf(
-            "bench_pose_db --db RUN.db [--run 1] [--seed 1] [--cache FILE] [--simulate] "
-            "[--csv FILE]\n");
-        return 0;
-      } else
-        throw std::invalid_argument("unknown argument " + a);
-    }
-    if (db_path.empty()) throw std::invalid_argument("--db is required");
+    const std::string &db_path = args.db_path, &cache = args.cache, &csv = args.csv;
+    const std::int64_t run_id = args.run_id;
+    const std::uint64_t seed = args.seed;
+    const bool simulate = args.simulate;
+    const std::vector<int>& dump = args.dump;
+    const ImpressionCentroidOptions& impression = args.impression;
     RunDatabaseOptions ro;
     ro.read_only = true;
     RunDatabase db(db_path, ro);
@@ -544,4 +540,16 @@ int main(int argc, char** argv) {
     return 1;
   }
   return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  Args args;
+  CLI::App app(
+      "bench_pose_db: the pose stage on a stored run of the virtual rig: stored-frame impression "
+      "centroids vs the simulator's truth, by height / view angle / fins, and the pose errors");
+  AddOptions(app, args);
+  CLI11_PARSE(app, argc, argv);
+  return Run(args);
 }

@@ -4,7 +4,6 @@
 
 #include <chrono>
 #include <cstdio>
-#include <cstdlib>
 #include <ctime>
 #include <limits>
 #include <optional>
@@ -12,6 +11,8 @@
 #include <string>
 #include <thread>
 #include <vector>
+
+#include <CLI/CLI.hpp>
 
 #include "geometry/bvh.h"
 #include "geometry/fisheye.h"
@@ -66,8 +67,16 @@ Result Run(const Bvh& bvh, const std::vector<Ray>& rays, const std::vector<doubl
 }  // namespace
 
 int main(int argc, char** argv) {
-  const int triangles = argc > 1 ? std::atoi(argv[1]) : 200000;
-  const double seconds = argc > 2 ? std::atof(argv[2]) : 1.0;
+  int triangles = 200000;
+  double seconds = 1.0;
+  CLI::App app(
+      "bench_raycast: BVH build time and single-thread ray casting throughput on a cylinder-cap "
+      "finger");
+  app.option_defaults()->always_capture_default();
+  app.add_option("triangles", triangles, "triangles of the finger mesh")
+      ->check(CLI::PositiveNumber);
+  app.add_option("seconds_per_case", seconds, "minimum casting time per case, s");
+  CLI11_PARSE(app, argc, argv);
   const auto profile = MakeCylinderCapProfile({});
   const TriangleMesh finger =
       MakeRevolutionMesh(*profile, TessellationOptions::ForTriangleCount(*profile, triangles));

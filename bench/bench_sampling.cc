@@ -5,9 +5,11 @@
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
-#include <cstdlib>
 #include <ctime>
+#include <limits>
 #include <vector>
+
+#include <CLI/CLI.hpp>
 
 #include "geometry/sampling.h"
 #include "geometry/shapes.h"
@@ -30,8 +32,15 @@ double ThreadCpu() {
 }  // namespace
 
 int main(int argc, char** argv) {
-  const int count = argc > 1 ? std::atoi(argv[1]) : 10000;
-  const int repeats = argc > 2 ? std::max(1, std::atoi(argv[2])) : 5;
+  int count = 10000, repeats = 5;
+  CLI::App app(
+      "bench_sampling: blue-noise sampling time (weighted sample elimination) and spacing on the "
+      "cylinder-cap finger");
+  app.option_defaults()->always_capture_default();
+  app.add_option("count", count, "points sampled")->check(CLI::PositiveNumber);
+  app.add_option("repeats", repeats, "timed runs per case")
+      ->transform(CLI::Bound(1, std::numeric_limits<int>::max()).description("raised to >= 1"));
+  CLI11_PARSE(app, argc, argv);
   const auto profile = MakeCylinderCapProfile({});
   for (int triangles : {0, 200000}) {
     const TriangleMesh mesh =

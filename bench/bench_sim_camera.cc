@@ -7,13 +7,15 @@
 
 #include <algorithm>
 #include <cstdio>
-#include <cstdlib>
 #include <ctime>
 #include <exception>
+#include <limits>
 #include <memory>
 #include <numbers>
 #include <string>
 #include <vector>
+
+#include <CLI/CLI.hpp>
 
 #include "sim/camera_random.h"
 #include "sim/checkerboard.h"
@@ -47,8 +49,15 @@ Summary Summarize(std::vector<double> wall_ms, const std::vector<double>& cpu_ms
 }  // namespace
 
 int main(int argc, char** argv) {
+  int frames = 200;
+  CLI::App app(
+      "bench_sim_camera: simulated tactile camera speed (background, no-contact and press frames "
+      "per built-in shape, checkerboards)");
+  app.option_defaults()->always_capture_default();
+  app.add_option("frames_per_kind", frames, "frames rendered per kind")
+      ->transform(CLI::Bound(1, std::numeric_limits<int>::max()).description("raised to >= 1"));
+  CLI11_PARSE(app, argc, argv);
   try {
-    const int frames = argc > 1 ? std::max(1, std::atoi(argv[1])) : 200;
     std::printf("bench_sim_camera: 640x480, %d frames per kind, 1 mm presses\n", frames);
     for (const char* shape : {"cylinder", "cone", "spline"}) {
       gs360::SimRigOptions options;

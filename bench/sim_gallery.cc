@@ -12,6 +12,7 @@
 #include <numbers>
 #include <string>
 
+#include <CLI/CLI.hpp>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -65,8 +66,15 @@ void Write(const std::filesystem::path& path, const cv::Mat& image) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  std::string out_dir = "docs/images";
+  CLI::App app(
+      "sim_gallery: writes what the simulated GelSight360 camera sees (reference, presses, "
+      "difference and zoom images, a checkerboard) as PNG");
+  app.option_defaults()->always_capture_default();
+  app.add_option("output_dir", out_dir, "directory for the PNG images (created if missing)");
+  CLI11_PARSE(app, argc, argv);
   try {
-    const std::filesystem::path out = argc > 1 ? argv[1] : "docs/images";
+    const std::filesystem::path out = out_dir;
     std::filesystem::create_directories(out);
     const gs360::SimRigOptions options;  // the default rig (sim/rig_model.h)
     auto rig = std::make_shared<gs360::SimRig>(options);
