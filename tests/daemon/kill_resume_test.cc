@@ -30,11 +30,13 @@ RunDatabase ReadOnly(const std::filesystem::path& path) {
   return RunDatabase(path, ro);
 }
 
-// Polls the daemon until the run's view satisfies `pred` (60 s at most).
+// Polls the daemon until the run's view satisfies `pred`. The bound only catches a hang: the
+// last resume's few hundred probes take about a minute at instant motion, longer on a loaded CI
+// machine, so it is generous (5 min).
 template <typename Pred>
 Json WaitFor(cli::DaemonClient& client, std::int64_t id, Pred pred) {
   Json run;
-  for (int i = 0; i < 1200; ++i) {
+  for (int i = 0; i < 6000; ++i) {
     run = client.Get("/api/v1/runs/" + std::to_string(id));
     if (pred(run)) return run;
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
