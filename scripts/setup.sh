@@ -30,9 +30,10 @@ packages=(
   pybind11-dev python3-dev python3-numpy
   curl
 )
-# Headless browser for the dashboard's test (tests/browser); only the test mode needs it.
+# Only the test mode needs these: the headless browser for the dashboard's test (tests/browser)
+# and clang-format for the format check (tests/CMakeLists.txt).
 if [ "$mode" = test ]; then
-  packages+=(chromium)
+  packages+=(chromium clang-format)
 fi
 
 missing=()
