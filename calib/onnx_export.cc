@@ -112,17 +112,12 @@ void OnnxExportOptions::Check() const {
   }
 }
 
-std::vector<std::uint8_t> ExportMlpToOnnx(const Mlp& mlp, const OnnxExportOptions& options) {
-  GOOGLE_PROTOBUF_VERIFY_VERSION;
-  options.Check();
+namespace {
+
+// The layer shapes must chain: ONNX's Gemm shape inference does not compare the inner
+// dimensions, so the checker would not catch this.
+void CheckLayerShapes(const Mlp& mlp) {
   const auto& layers = mlp.layers();
-  if (mlp.sizes().empty() || layers.empty()) {
-    throw std::invalid_argument("ExportMlpToOnnx: empty network");
-  }
-  const int in = mlp.input_size();
-  const int out = mlp.output_size();
-  // The layer shapes must chain: ONNX's Gemm shape inference does not compare the inner
-  // dimensions, so the checker would not catch this.
   if (layers.size() + 1 != mlp.sizes().size()) {
     throw std::invalid_argument("ExportMlpToOnnx: " + std::to_string(layers.size()) +
                                 " layers for " + std::to_string(mlp.sizes().size()) + " sizes");
@@ -140,6 +135,47 @@ std::vector<std::uint8_t> ExportMlpToOnnx(const Mlp& mlp, const OnnxExportOption
                                   std::to_string(rows) + "]");
     }
   }
+}
+
+// The Fourier features of tensor `current` as graph nodes; returns the features' tensor name.
+std::string AddFourierNodes(onnx::GraphProto* graph, const FourierFeatures& fourier, int in,
+                            const std::string& current) {
+  // phases = a F^T with one non-zero per row of F (w_j at column i), so each phase is the
+  // single float product w_j a_i that Mlp::Encode computes; then [a, sin, cos].
+  const int count = fourier.inputs * fourier.frequencies;
+  Eigen::MatrixXd f = Eigen::MatrixXd::Zero(count, in);
+  for (int i = 0; i < fourier.inputs; ++i) {
+    float w = fourier.base;
+    for (int j = 0; j < fourier.frequencies; ++j, w *= 2.0f) {
+      f(i * fourier.frequencies + j, i) = static_cast<double>(w);
+    }
+  }
+  AddInitializer(graph, "fourier.frequencies", f, false);
+  AddInitializer(graph, "fourier.zero", Eigen::VectorXd::Zero(count), true);
+  onnx::NodeProto* phase =
+      AddNode(graph, "Gemm", "fourier.Gemm", {current, "fourier.frequencies", "fourier.zero"},
+              "fourier.phase");
+  AddIntAttribute(phase, "transB", 1);
+  AddNode(graph, "Sin", "fourier.Sin", {"fourier.phase"}, "fourier.sin");
+  AddNode(graph, "Cos", "fourier.Cos", {"fourier.phase"}, "fourier.cos");
+  onnx::NodeProto* concat = AddNode(graph, "Concat", "fourier.Concat",
+                                    {current, "fourier.sin", "fourier.cos"}, "fourier.features");
+  AddIntAttribute(concat, "axis", 1);
+  return "fourier.features";
+}
+
+}  // namespace
+
+std::vector<std::uint8_t> ExportMlpToOnnx(const Mlp& mlp, const OnnxExportOptions& options) {
+  GOOGLE_PROTOBUF_VERIFY_VERSION;
+  options.Check();
+  const auto& layers = mlp.layers();
+  if (mlp.sizes().empty() || layers.empty()) {
+    throw std::invalid_argument("ExportMlpToOnnx: empty network");
+  }
+  const int in = mlp.input_size();
+  const int out = mlp.output_size();
+  CheckLayerShapes(mlp);
   const std::size_t num_layers = layers.size();
   std::vector<Eigen::MatrixXd> weights(num_layers);
   std::vector<Eigen::VectorXd> biases(num_layers);
@@ -189,30 +225,7 @@ std::vector<std::uint8_t> ExportMlpToOnnx(const Mlp& mlp, const OnnxExportOption
     AddNode(graph, "Div", "normalize_div", {"input_centered", "input_scale"}, "input_normalized");
     current = "input_normalized";
   }
-  if (fourier.Enabled()) {
-    // phases = a F^T with one non-zero per row of F (w_j at column i), so each phase is the
-    // single float product w_j a_i that Mlp::Encode computes; then [a, sin, cos].
-    const int count = fourier.inputs * fourier.frequencies;
-    Eigen::MatrixXd f = Eigen::MatrixXd::Zero(count, in);
-    for (int i = 0; i < fourier.inputs; ++i) {
-      float w = fourier.base;
-      for (int j = 0; j < fourier.frequencies; ++j, w *= 2.0f) {
-        f(i * fourier.frequencies + j, i) = static_cast<double>(w);
-      }
-    }
-    AddInitializer(graph, "fourier.frequencies", f, false);
-    AddInitializer(graph, "fourier.zero", Eigen::VectorXd::Zero(count), true);
-    onnx::NodeProto* phase =
-        AddNode(graph, "Gemm", "fourier.Gemm", {current, "fourier.frequencies", "fourier.zero"},
-                "fourier.phase");
-    AddIntAttribute(phase, "transB", 1);
-    AddNode(graph, "Sin", "fourier.Sin", {"fourier.phase"}, "fourier.sin");
-    AddNode(graph, "Cos", "fourier.Cos", {"fourier.phase"}, "fourier.cos");
-    onnx::NodeProto* concat = AddNode(graph, "Concat", "fourier.Concat",
-                                      {current, "fourier.sin", "fourier.cos"}, "fourier.features");
-    AddIntAttribute(concat, "axis", 1);
-    current = "fourier.features";
-  }
+  if (fourier.Enabled()) current = AddFourierNodes(graph, fourier, in, current);
   for (std::size_t k = 0; k < num_layers; ++k) {
     const std::string prefix = "layer" + std::to_string(k);
     const bool last = k + 1 == num_layers;

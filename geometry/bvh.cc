@@ -258,6 +258,25 @@ struct WatertightRay {
   }
 };
 
+// Throws std::invalid_argument for a non-finite vertex or an index out of range.
+void CheckIndexedMesh(const TriangleMesh& mesh) {
+  const int nv = mesh.NumVertices();
+  for (int i = 0; i < nv; ++i) {
+    if (!mesh.vertices[i].allFinite()) {
+      throw std::invalid_argument("Bvh: vertex " + std::to_string(i) + " is not finite");
+    }
+  }
+  const int nt = mesh.NumTriangles();
+  for (int t = 0; t < nt; ++t) {
+    const Eigen::Vector3i& f = mesh.triangles[t];
+    if (f.minCoeff() < 0 || f.maxCoeff() >= nv) {
+      throw std::invalid_argument("Bvh: triangle " + std::to_string(t) +
+                                  " has a vertex index out of range [0, " + std::to_string(nv) +
+                                  ")");
+    }
+  }
+}
+
 }  // namespace
 
 namespace {
@@ -304,24 +323,200 @@ void BvhOptions::Check() const {
   }
 }
 
+// Lays the binary tree out in lines_, in 8-byte words (see Layout in bvh.h): the empty leaf,
+// then depth first one block per 4-wide node: the Node4, the records of its leaf children, their
+// normals. Capacity for the largest possible size is reserved (untouched pages cost nothing), so
+// lines_ never moves.
+class Bvh::Writer {
+ public:
+  using Nodes = std::vector<Builder::BuildNode>;
+
+  Writer(Bvh& bvh, const Nodes& nodes) : bvh_(bvh) {
+    std::size_t capacity = 16 * static_cast<std::size_t>(nodes.size() + 2);  // nodes
+    for (const auto& bn : nodes) {
+      if (bn.count > 0) capacity += 32 + 19 * static_cast<std::size_t>(bn.count);  // leaf, padding
+    }
+    bvh_.lines_.reserve(capacity / kWordsPerLine + 1);
+  }
+
+  std::size_t used() const { return used_; }
+
+  // The empty leaf: one vertex (at the origin) and one triangle whose three corners are that
+  // vertex, so u = v = w = 0 (or NaN): never a hit. It has no normals (never read). Empty node
+  // slots point to it, so that entering one (NaN box tests from absurd rays) is harmless.
+  void AddEmptyLeaf() {
+    static_assert(kEmptyLeaf == 0 && kRoot == kWordsPerLine);  // the record is one line
+    unsigned char* rec = Word(Grow(LeafBytes(1, 2) / 8));
+    rec[0] = 1;  // vertices; then x, y, z[2] = 0, triangle[1] = -1, corner[1][3] = 0
+    rec[1] = 1;  // triangles
+    const std::int32_t none = -1;
+    std::memcpy(rec + 8 + 24 * 2, &none, sizeof(none));
+  }
+
+  // Collapses the binary tree into 4-wide nodes, depth first: each node takes up to four
+  // descendants, opening the inner candidate with the largest box surface first.
+  void Collapse(const Nodes& bnodes, const std::vector<std::int32_t>& order, double pad) {
+    struct Todo {
+      int binary;           // binary node
+      std::int32_t parent;  // word offset of the parent Node4, -1 for the root
+      int slot;             // slot in the parent
+    };
+    std::vector<Todo> todo = {{0, -1, 0}};
+    while (!todo.empty()) {
+      const Todo item = todo.back();
+      todo.pop_back();
+      const std::vector<int> slots = Slots(bnodes, item.binary);
+      const std::size_t offset = Grow(sizeof(Node4) / 8);
+      Node4 node{};
+      for (int k = 0; k < 4; ++k) {
+        if (k >= static_cast<int>(slots.size())) {
+          SetEmptySlot(&node, k);
+          continue;
+        }
+        const auto& c = bnodes[slots[k]];
+        node.lo_x[k] = RoundDown(c.box.lo.x() - pad);
+        node.lo_y[k] = RoundDown(c.box.lo.y() - pad);
+        node.lo_z[k] = RoundDown(c.box.lo.z() - pad);
+        node.hi_x[k] = RoundUp(c.box.hi.x() + pad);
+        node.hi_y[k] = RoundUp(c.box.hi.y() + pad);
+        node.hi_z[k] = RoundUp(c.box.hi.z() + pad);
+        if (c.count > 0) {
+          node.child[k] = AddLeaf(&order[c.index], c.count);
+          node.count[k] = c.count;
+          ++bvh_.stats_.leaves;
+        } else {
+          // Child and count are set when its block is laid out.
+          todo.push_back({slots[k], static_cast<std::int32_t>(offset), k});
+        }
+      }
+      std::memcpy(Word(offset), &node, sizeof(node));
+      // The prefetched part of the block ends here; the leaves' normals follow (read only for a
+      // final hit, and prefetched when their leaf is entered).
+      const auto lines = static_cast<std::int32_t>(std::min<std::size_t>(
+          (used_ - offset + kWordsPerLine - 1) / kWordsPerLine, kMaxPrefetchLines));
+      FlushNormals();
+      AlignLine();
+      ++bvh_.stats_.nodes;
+      if (item.parent >= 0) {
+        const auto child = static_cast<std::int32_t>(offset);
+        const std::int32_t count = -lines;
+        unsigned char* parent = Word(static_cast<std::size_t>(item.parent));
+        std::memcpy(parent + offsetof(Node4, child) + 4 * item.slot, &child, sizeof(child));
+        std::memcpy(parent + offsetof(Node4, count) + 4 * item.slot, &count, sizeof(count));
+      }
+    }
+  }
+
+ private:
+  unsigned char* Word(std::size_t at) { return bvh_.lines_.data()->bytes + 8 * at; }
+
+  // Appends zero words; returns the first one's offset.
+  std::size_t Grow(std::size_t words) {
+    const std::size_t at = used_;
+    used_ += words;
+    if (used_ > bvh_.lines_.size() * kWordsPerLine) {
+      bvh_.lines_.resize((used_ + kWordsPerLine - 1) / kWordsPerLine);
+    }
+    return at;
+  }
+
+  void AlignLine() { Grow((kWordsPerLine - used_ % kWordsPerLine) % kWordsPerLine); }
+
+  // Up to four descendants of binary node b for one Node4.
+  static std::vector<int> Slots(const Nodes& bnodes, int b) {
+    if (bnodes[b].count > 0) return {b};  // the whole tree is one leaf
+    std::vector<int> slots = {bnodes[b].left, bnodes[b].index};
+    while (slots.size() < 4) {
+      int open = -1;
+      double open_area = -1.0;
+      for (int k = 0; k < static_cast<int>(slots.size()); ++k) {
+        const auto& c = bnodes[slots[k]];
+        if (c.count == 0 && c.box.HalfArea() > open_area) {
+          open_area = c.box.HalfArea();
+          open = k;
+        }
+      }
+      if (open < 0) break;
+      const int opened = slots[open];
+      slots[open] = bnodes[opened].left;
+      slots.insert(slots.begin() + open + 1, bnodes[opened].index);
+    }
+    return slots;
+  }
+
+  // Empty slot: an inverted infinite box, never entered (its near plane is at +inf and its far
+  // plane at -inf whatever the ray's direction).
+  static void SetEmptySlot(Node4* node, int k) {
+    constexpr float kInf = std::numeric_limits<float>::infinity();
+    node->lo_x[k] = node->lo_y[k] = node->lo_z[k] = kInf;
+    node->hi_x[k] = node->hi_y[k] = node->hi_z[k] = -kInf;
+    node->child[k] = kEmptyLeaf;
+    node->count[k] = 1;
+  }
+
+  // Appends a leaf record for the triangles `tris` (mesh indices); returns its word offset.
+  std::int32_t AddLeaf(const std::int32_t* tris, int leaf_nt) {
+    const TriangleMesh& mesh = bvh_.mesh_;
+    const std::size_t first = pending_vertices_.size();
+    corner_.resize(3 * leaf_nt);
+    for (int i = 0; i < leaf_nt; ++i) {
+      for (int j = 0; j < 3; ++j) {
+        const int mv = mesh.triangles[tris[i]][j];
+        const auto begin = pending_vertices_.begin() + static_cast<std::ptrdiff_t>(first);
+        const auto it = std::find(begin, pending_vertices_.end(), mv);
+        corner_[3 * i + j] = static_cast<std::uint8_t>(it - begin);
+        if (it == pending_vertices_.end()) pending_vertices_.push_back(mv);
+      }
+    }
+    const int n_v = static_cast<int>(pending_vertices_.size() - first);
+    const int m = n_v + (n_v & 1);
+    const std::size_t at = Grow(LeafBytes(leaf_nt, m) / 8);
+    unsigned char* rec = Word(at);
+    rec[0] = static_cast<unsigned char>(n_v);
+    rec[1] = static_cast<unsigned char>(leaf_nt);
+    for (int a = 0; a < 3; ++a) {
+      for (int i = 0; i < m; ++i) {  // an odd count repeats the last vertex
+        const int v = pending_vertices_[first + static_cast<std::size_t>(std::min(i, n_v - 1))];
+        std::memcpy(rec + 8 + 8 * (a * m + i), &mesh.vertices[v][a], sizeof(double));
+      }
+    }
+    unsigned char* tri = rec + 8 + 24 * m;
+    std::memcpy(tri, tris, 4 * static_cast<std::size_t>(leaf_nt));
+    std::memcpy(tri + 4 * leaf_nt, corner_.data(), corner_.size());
+    pending_normals_.emplace_back(at, first);
+    return static_cast<std::int32_t>(at);
+  }
+
+  // Appends the normals of the block's leaves and points each leaf's header at them.
+  void FlushNormals() {
+    for (std::size_t i = 0; i < pending_normals_.size(); ++i) {
+      const auto [leaf, first] = pending_normals_[i];
+      const std::size_t end = i + 1 < pending_normals_.size() ? pending_normals_[i + 1].second
+                                                              : pending_vertices_.size();
+      const auto at = static_cast<std::int32_t>(used_ - leaf);
+      std::memcpy(Word(leaf) + 4, &at, sizeof(at));
+      for (std::size_t v = first; v < end; ++v) {
+        std::memcpy(Word(Grow(3)), bvh_.mesh_.normals[pending_vertices_[v]].data(), 24);
+      }
+    }
+    pending_normals_.clear();
+    pending_vertices_.clear();
+  }
+
+  Bvh& bvh_;
+  std::size_t used_ = 0;  // words
+  // Leaves of the current block whose normals are still to be appended: (record, first vertex
+  // in pending_vertices_).
+  std::vector<std::pair<std::size_t, std::size_t>> pending_normals_;
+  std::vector<int> pending_vertices_;
+  std::vector<std::uint8_t> corner_;
+};
+
 Bvh::Bvh(const TriangleMesh& mesh, const BvhOptions& options) : mesh_(mesh) {
   options.Check();
   const auto start = std::chrono::steady_clock::now();
-  const int nv = mesh_.NumVertices();
-  for (int i = 0; i < nv; ++i) {
-    if (!mesh_.vertices[i].allFinite()) {
-      throw std::invalid_argument("Bvh: vertex " + std::to_string(i) + " is not finite");
-    }
-  }
+  CheckIndexedMesh(mesh_);
   const int nt = mesh_.NumTriangles();
-  for (int t = 0; t < nt; ++t) {
-    const Eigen::Vector3i& f = mesh_.triangles[t];
-    if (f.minCoeff() < 0 || f.maxCoeff() >= nv) {
-      throw std::invalid_argument("Bvh: triangle " + std::to_string(t) +
-                                  " has a vertex index out of range [0, " + std::to_string(nv) +
-                                  ")");
-    }
-  }
   if (!mesh_.HasNormals()) mesh_.ComputeVertexNormals();
   if (nt == 0) {
     stats_.build_seconds =
@@ -363,161 +558,10 @@ Bvh::Bvh(const TriangleMesh& mesh, const BvhOptions& options) : mesh_(mesh) {
   builder.nodes.reserve(2 * n / std::max(1, options.max_leaf_size) + 1);
   builder.Build(0, n, 0);
 
-  // Serialise into lines_, in 8-byte words: the empty leaf, then depth first one block per 4-wide
-  // node: the Node4, the records of its leaf children, their normals. Capacity for the largest
-  // possible size is reserved (untouched pages cost nothing), so lines_ never moves.
-  std::size_t capacity = 16 * static_cast<std::size_t>(builder.nodes.size() + 2);  // nodes
-  for (const auto& bn : builder.nodes) {
-    if (bn.count > 0) capacity += 32 + 19 * static_cast<std::size_t>(bn.count);  // leaf, padding
-  }
-  lines_.reserve(capacity / kWordsPerLine + 1);
-  std::size_t used = 0;  // words
-  auto word = [&](std::size_t at) { return lines_.data()->bytes + 8 * at; };
-  auto grow = [&](std::size_t words) {  // appends zero words; returns the first one's offset
-    const std::size_t at = used;
-    used += words;
-    if (used > lines_.size() * kWordsPerLine)
-      lines_.resize((used + kWordsPerLine - 1) / kWordsPerLine);
-    return at;
-  };
-  auto align_line = [&] { grow((kWordsPerLine - used % kWordsPerLine) % kWordsPerLine); };
-  // Leaves of the current block whose normals are still to be appended: (record, first vertex
-  // in pending_vertices).
-  std::vector<std::pair<std::size_t, std::size_t>> pending_normals;
-  std::vector<int> pending_vertices;
-  std::vector<std::uint8_t> corner;
-  // Appends a leaf record for the triangles `tris` (mesh indices); returns its word offset.
-  auto add_leaf = [&](const std::int32_t* tris, int leaf_nt) {
-    const std::size_t first = pending_vertices.size();
-    corner.resize(3 * leaf_nt);
-    for (int i = 0; i < leaf_nt; ++i) {
-      for (int j = 0; j < 3; ++j) {
-        const int mv = mesh_.triangles[tris[i]][j];
-        const auto begin = pending_vertices.begin() + static_cast<std::ptrdiff_t>(first);
-        const auto it = std::find(begin, pending_vertices.end(), mv);
-        corner[3 * i + j] = static_cast<std::uint8_t>(it - begin);
-        if (it == pending_vertices.end()) pending_vertices.push_back(mv);
-      }
-    }
-    const int n_v = static_cast<int>(pending_vertices.size() - first);
-    const int m = n_v + (n_v & 1);
-    const std::size_t at = grow(LeafBytes(leaf_nt, m) / 8);
-    unsigned char* rec = word(at);
-    rec[0] = static_cast<unsigned char>(n_v);
-    rec[1] = static_cast<unsigned char>(leaf_nt);
-    for (int a = 0; a < 3; ++a) {
-      for (int i = 0; i < m; ++i) {  // an odd count repeats the last vertex
-        const int v = pending_vertices[first + static_cast<std::size_t>(std::min(i, n_v - 1))];
-        std::memcpy(rec + 8 + 8 * (a * m + i), &mesh_.vertices[v][a], sizeof(double));
-      }
-    }
-    unsigned char* tri = rec + 8 + 24 * m;
-    std::memcpy(tri, tris, 4 * static_cast<std::size_t>(leaf_nt));
-    std::memcpy(tri + 4 * leaf_nt, corner.data(), corner.size());
-    pending_normals.emplace_back(at, first);
-    return static_cast<std::int32_t>(at);
-  };
-  // The empty leaf: one vertex (at the origin) and one triangle whose three corners are that
-  // vertex, so u = v = w = 0 (or NaN): never a hit. It has no normals (never read). Empty node
-  // slots point to it, so that entering one (NaN box tests from absurd rays) is harmless.
-  {
-    static_assert(kEmptyLeaf == 0 && kRoot == kWordsPerLine);  // the record is one line
-    unsigned char* rec = word(grow(LeafBytes(1, 2) / 8));
-    rec[0] = 1;  // vertices; then x, y, z[2] = 0, triangle[1] = -1, corner[1][3] = 0
-    rec[1] = 1;  // triangles
-    const std::int32_t none = -1;
-    std::memcpy(rec + 8 + 24 * 2, &none, sizeof(none));
-  }
-
-  // Collapse the binary tree into 4-wide nodes, depth first: each node takes up to four
-  // descendants, opening the inner candidate with the largest box surface first.
-  const auto& bnodes = builder.nodes;
-  struct Todo {
-    int binary;           // binary node
-    std::int32_t parent;  // word offset of the parent Node4, -1 for the root
-    int slot;             // slot in the parent
-  };
-  std::vector<Todo> todo = {{0, -1, 0}};
-  while (!todo.empty()) {
-    const Todo item = todo.back();
-    todo.pop_back();
-    const int b = item.binary;
-    std::vector<int> slots;
-    if (bnodes[b].count > 0) {
-      slots.push_back(b);  // the whole tree is one leaf
-    } else {
-      slots = {bnodes[b].left, bnodes[b].index};
-      while (slots.size() < 4) {
-        int open = -1;
-        double open_area = -1.0;
-        for (int k = 0; k < static_cast<int>(slots.size()); ++k) {
-          const auto& c = bnodes[slots[k]];
-          if (c.count == 0 && c.box.HalfArea() > open_area) {
-            open_area = c.box.HalfArea();
-            open = k;
-          }
-        }
-        if (open < 0) break;
-        const int opened = slots[open];
-        slots[open] = bnodes[opened].left;
-        slots.insert(slots.begin() + open + 1, bnodes[opened].index);
-      }
-    }
-    const std::size_t offset = grow(sizeof(Node4) / 8);
-    Node4 node{};
-    for (int k = 0; k < 4; ++k) {
-      if (k >= static_cast<int>(slots.size())) {
-        // Empty slot: an inverted infinite box, never entered (its near plane is at +inf and
-        // its far plane at -inf whatever the ray's direction).
-        constexpr float kInf = std::numeric_limits<float>::infinity();
-        node.lo_x[k] = node.lo_y[k] = node.lo_z[k] = kInf;
-        node.hi_x[k] = node.hi_y[k] = node.hi_z[k] = -kInf;
-        node.child[k] = kEmptyLeaf;
-        node.count[k] = 1;
-        continue;
-      }
-      const auto& c = bnodes[slots[k]];
-      node.lo_x[k] = RoundDown(c.box.lo.x() - pad);
-      node.lo_y[k] = RoundDown(c.box.lo.y() - pad);
-      node.lo_z[k] = RoundDown(c.box.lo.z() - pad);
-      node.hi_x[k] = RoundUp(c.box.hi.x() + pad);
-      node.hi_y[k] = RoundUp(c.box.hi.y() + pad);
-      node.hi_z[k] = RoundUp(c.box.hi.z() + pad);
-      if (c.count > 0) {
-        node.child[k] = add_leaf(&order[c.index], c.count);
-        node.count[k] = c.count;
-        ++stats_.leaves;
-      } else {
-        // Child and count are set when its block is laid out.
-        todo.push_back({slots[k], static_cast<std::int32_t>(offset), k});
-      }
-    }
-    std::memcpy(word(offset), &node, sizeof(node));
-    // The prefetched part of the block ends here; the leaves' normals follow (read only for a
-    // final hit, and prefetched when their leaf is entered).
-    const auto lines = static_cast<std::int32_t>(std::min<std::size_t>(
-        (used - offset + kWordsPerLine - 1) / kWordsPerLine, kMaxPrefetchLines));
-    for (std::size_t i = 0; i < pending_normals.size(); ++i) {
-      const auto [leaf, first] = pending_normals[i];
-      const std::size_t end =
-          i + 1 < pending_normals.size() ? pending_normals[i + 1].second : pending_vertices.size();
-      const auto at = static_cast<std::int32_t>(used - leaf);
-      std::memcpy(word(leaf) + 4, &at, sizeof(at));
-      for (std::size_t v = first; v < end; ++v)
-        std::memcpy(word(grow(3)), mesh_.normals[pending_vertices[v]].data(), 24);
-    }
-    pending_normals.clear();
-    pending_vertices.clear();
-    align_line();
-    ++stats_.nodes;
-    if (item.parent >= 0) {
-      const auto child = static_cast<std::int32_t>(offset);
-      const std::int32_t count = -lines;
-      unsigned char* parent = word(static_cast<std::size_t>(item.parent));
-      std::memcpy(parent + offsetof(Node4, child) + 4 * item.slot, &child, sizeof(child));
-      std::memcpy(parent + offsetof(Node4, count) + 4 * item.slot, &count, sizeof(count));
-    }
-  }
+  Writer writer(*this, builder.nodes);
+  writer.AddEmptyLeaf();
+  writer.Collapse(builder.nodes, order, pad);
+  const std::size_t used = writer.used();
   if (used > static_cast<std::size_t>(std::numeric_limits<std::int32_t>::max())) {
     throw std::length_error("Bvh: " + std::to_string(nt) +
                             " triangles need more than 16 GiB of tree (32-bit offsets)");

@@ -150,6 +150,8 @@ class Bvh {
   HitSlot Traverse(const Ray& ray, double t_min, double t_max, double* best_t, double* best_b1,
                    double* best_b2) const;
 
+  class Writer;  // lays the tree out in lines_ (bvh.cc)
+
   TriangleMesh mesh_;
   LargeVector<Line> lines_;  // see Layout above; empty for a mesh without hittable triangles
   BvhStats stats_;

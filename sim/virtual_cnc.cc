@@ -709,6 +709,48 @@ void VirtualCnc::Impl::ReportStatus() {
 // ---------------------------------------------------------------------------------------------
 // '$' system commands (system_execute_line).
 
+// `$#`: the coordinate systems, G28 / G30, G92, the tool length offset and the last probe.
+void VirtualCnc::Impl::ReportCoordinates() {
+  std::string s;
+  for (int i = 0; i < 6; ++i) {
+    s += "[G" + std::to_string(54 + i) + ":" +
+         AxisValues(coords_.wcs[static_cast<std::size_t>(i)]) + "]\r\n";
+  }
+  s += "[G28:" + AxisValues(coords_.g28) + "]\r\n";
+  s += "[G30:" + AxisValues(coords_.g30) + "]\r\n";
+  s += "[G92:" + AxisValues(gc_.coord_offset) + "]\r\n";
+  s += "[TLO:" +
+       (settings_.report_inches ? FormatGrblFloat(gc_.tool_length_offset / kMmPerInch, 4)
+                                : FormatGrblFloat(gc_.tool_length_offset, 3)) +
+       "]\r\n";
+  s += "[PRB:" + AxisValues(probe_position_) + ":" + (probe_succeeded_ ? "1" : "0") + "]\r\n";
+  Emit(s);
+}
+
+// `$RST=$`, `$RST=#`, `$RST=*`: settings, coordinates or everything back to the defaults.
+int VirtualCnc::Impl::RestoreDefaults(char what) {
+  switch (what) {
+    case '$':
+      settings_ = options_.settings;
+      break;
+    case '#':
+      coords_ = CoordinateData();
+      break;
+    case '*':
+      settings_ = options_.settings;
+      coords_ = CoordinateData();
+      startup_lines_ = {};
+      build_info_.clear();
+      break;
+    default:
+      return kGrblInvalidStatement;
+  }
+  exec_.SetLimits(settings_.Limits());
+  Emit("[MSG:Restoring defaults]\r\n");
+  McReset();
+  return kGrblOk;
+}
+
 int VirtualCnc::Impl::SystemExecuteLine(Lock& lk, const std::string& line) {
   if (line.size() == 1) {
     Emit("[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]\r\n");
@@ -760,24 +802,10 @@ int VirtualCnc::Impl::SystemExecuteLine(Lock& lk, const std::string& line) {
   }
   if (!(state_ == GrblState::kIdle || state_ == GrblState::kAlarm)) return kGrblIdleError;
   switch (c1) {
-    case '#': {
+    case '#':
       if (line.size() != 2) return kGrblInvalidStatement;
-      std::string s;
-      for (int i = 0; i < 6; ++i) {
-        s += "[G" + std::to_string(54 + i) + ":" +
-             AxisValues(coords_.wcs[static_cast<std::size_t>(i)]) + "]\r\n";
-      }
-      s += "[G28:" + AxisValues(coords_.g28) + "]\r\n";
-      s += "[G30:" + AxisValues(coords_.g30) + "]\r\n";
-      s += "[G92:" + AxisValues(gc_.coord_offset) + "]\r\n";
-      s += "[TLO:" +
-           (settings_.report_inches ? FormatGrblFloat(gc_.tool_length_offset / kMmPerInch, 4)
-                                    : FormatGrblFloat(gc_.tool_length_offset, 3)) +
-           "]\r\n";
-      s += "[PRB:" + AxisValues(probe_position_) + ":" + (probe_succeeded_ ? "1" : "0") + "]\r\n";
-      Emit(s);
+      ReportCoordinates();
       return kGrblOk;
-    }
     case 'H':
       if (!settings_.homing_enable) return kGrblSettingDisabled;
       if (line.size() != 2) return kGrblInvalidStatement;  // HOMING_SINGLE_AXIS_COMMANDS is off
@@ -802,29 +830,9 @@ int VirtualCnc::Impl::SystemExecuteLine(Lock& lk, const std::string& line) {
       Synchronize(lk);  // FORCE_BUFFER_SYNC_DURING_EEPROM_WRITE
       build_info_ = line.substr(3);
       return kGrblOk;
-    case 'R': {
+    case 'R':
       if (line.size() != 6 || line.compare(2, 3, "ST=") != 0) return kGrblInvalidStatement;
-      switch (line[5]) {
-        case '$':
-          settings_ = options_.settings;
-          break;
-        case '#':
-          coords_ = CoordinateData();
-          break;
-        case '*':
-          settings_ = options_.settings;
-          coords_ = CoordinateData();
-          startup_lines_ = {};
-          build_info_.clear();
-          break;
-        default:
-          return kGrblInvalidStatement;
-      }
-      exec_.SetLimits(settings_.Limits());
-      Emit("[MSG:Restoring defaults]\r\n");
-      McReset();
-      return kGrblOk;
-    }
+      return RestoreDefaults(line[5]);
     case 'N':
       if (line.size() == 2) {
         for (std::size_t n = 0; n < startup_lines_.size(); ++n) {

@@ -279,7 +279,9 @@ class VirtualCnc::Impl {
   bool EnterMainLoop(Lock& lk);
   // One received line: dispatch, alarm lock, grblHAL's error latch. Returns its status.
   int ExecuteLine(Lock& lk, const LineBuffer& in);
-  void ReportBuildInfo();  // `$I`
+  void ReportBuildInfo();          // `$I`
+  void ReportCoordinates();        // `$#`
+  int RestoreDefaults(char what);  // `$RST=` + what; a GRBL status
   bool Aborting() const { return rt_reset_ || stop_ || !powered_ || boot_id_ != running_boot_; }
   void Wait(Lock& lk, double deadline = std::numeric_limits<double>::infinity());
   void ExecuteRealtime(Lock& lk);
