@@ -23,6 +23,12 @@ CalibrationResult CalibrateAndPrint(RunDatabase& db, std::int64_t run_id,
     std::fprintf(out, "  %-12s %s %8.2f s  %s\n", s.stage.c_str(), s.cached ? "cached" : "ran   ",
                  s.seconds, s.input_hash.c_str());
   }
+  if (result.model_path.empty()) {
+    std::fprintf(out, "\ncalibration stopped after %s in %s (no model exported)\n",
+                 result.stages.empty() ? "no stage" : result.stages.back().stage.c_str(),
+                 FormatDuration(result.seconds).c_str());
+    return result;
+  }
   std::fprintf(out, "\n%s", FormatValidationTable(result.validation).c_str());
   std::fprintf(out, "\ncalibration finished in %s\n  model:  %s\n  onnx:   %s\n  report: %s\n",
                FormatDuration(result.seconds).c_str(), result.model_path.string().c_str(),

@@ -55,6 +55,16 @@ struct HeightFieldOptions {
   // the virtual rig's < 30 deg band). [0, 90).
   double min_view_angle_deg = 0.0;
   // The passes for an imprint seen at `imprint_view_deg` (iterations or oblique_iterations).
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("iterations", self.iterations);
+    visit("oblique_iterations", self.oblique_iterations);
+    visit("oblique_view_angle_deg", self.oblique_view_angle_deg);
+    visit("tolerance", self.tolerance);
+    visit("unobserved_weight", self.unobserved_weight);
+    visit("min_normal_dot", self.min_normal_dot);
+    visit("min_view_angle_deg", self.min_view_angle_deg);
+  }
   int Passes(double imprint_view_deg) const {
     return imprint_view_deg >= oblique_view_angle_deg ? oblique_iterations : iterations;
   }

@@ -320,6 +320,15 @@ TEST_CASE("api: bad requests get 400 naming the field, and the daemon keeps serv
   r = PostJson(c, "/api/v1/runs/1/calibrate", {{"from", "everything"}});
   CHECK(r->status == 400);
   CHECK(Body(r)["error"]["field"] == "from");
+  r = PostJson(c, "/api/v1/runs/1/calibrate", {{"to", "the end"}});
+  CHECK(r->status == 400);
+  CHECK(Body(r)["error"]["field"] == "to");
+  r = PostJson(c, "/api/v1/runs/1/calibrate", {{"only", 3}});
+  CHECK(r->status == 400);
+  CHECK(Body(r)["error"]["field"] == "only");
+  r = PostJson(c, "/api/v1/runs/1/calibrate", {{"only", "train"}, {"to", "export"}});
+  CHECK(r->status == 400);
+  CHECK_THAT(Body(r)["error"]["message"].get<std::string>(), Catch::Contains("only_stage"));
   CHECK(c.Get("/api/v1/info")->status == 200);
   CHECK(Body(c.Get("/api/v1/runs"))["runs"].size() == 1);
 }

@@ -170,6 +170,11 @@ TEST_CASE(
     CHECK(truth.unverified == 0);
   }
 
+  // Up to the pose only: the later stages are skipped, and no model is claimed.
+  r = Gs360(dir, daemon->url(), {"calibrate", "1", "--to", "pose"});
+  INFO(r.out << r.err);
+  REQUIRE(r.exit_code == 0);
+  CHECK_THAT(r.out, Catch::Contains("no model exported") && Catch::Contains("skipped"));
   r = Gs360(dir, daemon->url(), {"calibrate", "1", "--max-epochs", "4"});
   INFO(r.out << r.err);
   REQUIRE(r.exit_code == 0);
