@@ -151,6 +151,7 @@ class TactileCamera {
  private:
   friend class SimGroundTruth;
   struct Background;
+  class PatchRender;  // RenderInto's re-rendered region (tactile_camera.cc)
 
   enum PixelKind : std::uint8_t { kOutside = 0, kGel = 1, kFin = 2, kNothing = 3 };
 
