@@ -24,7 +24,7 @@
 #include <string>
 #include <vector>
 
-#include "gcode/plan.h"
+#include "plan/plan.h"
 
 namespace gs360 {
 

@@ -1,4 +1,4 @@
-#include "gcode/plan.h"
+#include "plan/plan.h"
 
 #include <algorithm>
 #include <chrono>
@@ -9,7 +9,7 @@
 #include <sstream>
 #include <unordered_map>
 
-#include "gcode/tour.h"
+#include "plan/tour.h"
 #include "geometry/bvh.h"
 #include "geometry/hash.h"
 #include "geometry/sampling.h"
