@@ -9,10 +9,10 @@
 #include <sstream>
 #include <unordered_map>
 
-#include "plan/tour.h"
 #include "geometry/bvh.h"
 #include "geometry/hash.h"
 #include "geometry/sampling.h"
+#include "plan/tour.h"
 #include "rig/rig_shape.h"
 
 namespace gs360 {

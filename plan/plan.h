@@ -50,13 +50,13 @@
 #include <string_view>
 #include <vector>
 
-#include "plan/motion_estimate.h"
-#include "plan/surface_distance.h"
 #include "geometry/bvh.h"
 #include "geometry/fisheye.h"
 #include "geometry/mesh.h"
 #include "geometry/rigid3.h"
 #include "geometry/shapes.h"
+#include "plan/motion_estimate.h"
+#include "plan/surface_distance.h"
 #include "rig/rig_config.h"
 
 namespace gs360 {
