@@ -8,7 +8,7 @@
 #include <stdexcept>
 #include <string>
 
-#include "geometry/hash.h"
+#include "base/hash.h"
 #include "recon/features.h"
 
 namespace gs360 {

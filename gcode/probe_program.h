@@ -24,6 +24,7 @@
 #include <string>
 #include <vector>
 
+#include "base/format.h"
 #include "plan/plan.h"
 
 namespace gs360 {

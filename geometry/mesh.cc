@@ -14,7 +14,7 @@
 #include <sstream>
 #include <unordered_map>
 
-#include "geometry/hash.h"
+#include "base/hash.h"
 
 namespace gs360 {
 namespace {

@@ -9,8 +9,8 @@
 #include <sstream>
 #include <unordered_map>
 
+#include "base/hash.h"
 #include "geometry/bvh.h"
-#include "geometry/hash.h"
 #include "geometry/sampling.h"
 #include "plan/tour.h"
 #include "rig/rig_shape.h"

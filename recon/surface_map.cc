@@ -13,7 +13,7 @@
 #include <string>
 #include <thread>
 
-#include "geometry/hash.h"
+#include "base/hash.h"
 
 namespace gs360 {
 namespace {
