@@ -9,6 +9,7 @@
 #include <sstream>
 #include <unordered_map>
 
+#include "base/field_error.h"
 #include "base/hash.h"
 #include "geometry/bvh.h"
 #include "geometry/sampling.h"
@@ -30,7 +31,7 @@ std::string Num(double v) {
 }
 
 [[noreturn]] void BadField(const std::string& field, double value, const std::string& rule) {
-  throw std::invalid_argument("PlanOptions." + field + " " + rule + ", got " + Num(value));
+  ThrowFieldError("PlanOptions." + field, value, rule);
 }
 
 void RequirePositive(const char* field, double v) {
