@@ -149,9 +149,9 @@ struct VirtualCncOptions {
   // Largest per-axis belief error (mm) when position is lost (LosePositionOnReset).
   double lost_position_max_mm = 0.5;
   // Executed motion pieces kept for TruePosition(), and in instant mode as many jumps of the
-  // machine clock (one per executed motion batch and per 50 ms dwell step: about 9 per
-  // calibration probe with a 0.3 s settle dwell, see VirtualCncStats::clock_jumps). Older times
-  // throw std::out_of_range once either was evicted.
+  // machine clock (one per executed motion batch and per 50 ms dwell step, as GRBL's
+  // DWELL_TIME_STEP; VirtualCncStats::clock_jumps counts them). Older times throw
+  // std::out_of_range once either was evicted.
   std::size_t history_pieces = 1u << 15;
   std::uint64_t seed = 1;  // fault-injection randomness
 
