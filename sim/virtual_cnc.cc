@@ -809,6 +809,9 @@ void VirtualCnc::Replug() {
 bool VirtualCnc::Plugged() const {
   return impl_->Plugged();
 }
+bool VirtualCnc::HostAttached() const {
+  return impl_->HostAttached();
+}
 void VirtualCnc::RaiseAlarmDuringNextMove(int alarm_code, double fraction) {
   impl_->RaiseAlarmDuringNextMove(alarm_code, fraction);
 }

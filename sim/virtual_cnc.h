@@ -181,6 +181,7 @@ struct VirtualCncStats {
   std::uint64_t boots = 0;   // power-ups
   std::uint64_t blocks_planned = 0;
   std::uint64_t clock_jumps = 0;  // instant mode: machine-clock jumps recorded so far
+  std::uint64_t unheard = 0;      // replies lost because no host had the port open (reset_on_open)
 };
 
 class VirtualCnc {
@@ -237,6 +238,9 @@ class VirtualCnc {
   // std::runtime_error if the pty cannot be created. No effect when plugged.
   void Replug();
   bool Plugged() const;
+  // Whether a host has the port open (as the I/O thread last saw it: a close is noticed within
+  // a poll interval). Lets a test wait for the controller to see a host come or go.
+  bool HostAttached() const;
   // The next queued motion block stops dead after covering `fraction` of its length and the
   // controller raises ALARM:code. Codes 1 and 2 are critical events (reset required); other
   // codes are followed by an automatic reset (welcome), as an abort is.

@@ -70,7 +70,10 @@ void VirtualCnc::Impl::Emit(const std::string& s) {
 
 void VirtualCnc::Impl::Transmit(const std::string& s) {
   if (!plugged_ || !powered_) return;
-  if (options_.reset_on_open && !host_open_) return;  // nobody listening: lost
+  if (options_.reset_on_open && !host_open_) {  // nobody listening: lost
+    ++stats_.unheard;
+    return;
+  }
   if (tx_.empty()) tx_clock_ = std::max(tx_clock_, Clock::now());
   tx_ += s;
   WakeIo();
