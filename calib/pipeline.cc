@@ -14,10 +14,10 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "base/fields.h"
+#include "base/hash.h"
 #include "calib/onnx_export.h"
 #include "calib/report.h"
 #include "geometry/bvh.h"
-#include "geometry/hash.h"
 
 namespace gs360 {
 namespace {

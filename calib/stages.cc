@@ -4,8 +4,8 @@
 #include <stdexcept>
 
 #include "base/fields.h"
+#include "base/hash.h"
 #include "calib/code_hash.h"  // generated (calib/CMakeLists.txt)
-#include "geometry/hash.h"
 
 namespace gs360 {
 namespace {

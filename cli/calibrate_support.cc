@@ -2,6 +2,7 @@
 
 #include <chrono>
 
+#include "base/format.h"
 #include "calib/report.h"
 #include "cli/progress.h"
 

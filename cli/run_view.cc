@@ -4,6 +4,7 @@
 #include <string>
 #include <thread>
 
+#include "base/format.h"
 #include "calib/report.h"
 #include "cli/progress.h"
 #include "daemon/run_engine.h"

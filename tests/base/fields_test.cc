@@ -2,8 +2,11 @@
 
 #include <catch2/catch.hpp>
 
+#include <cmath>
 #include <set>
+#include <stdexcept>
 
+#include "base/field_error.h"
 #include "base/fields.h"
 
 using namespace gs360;
@@ -106,4 +109,13 @@ TEST_CASE("fields: each leaf changed in turn changes the JSON there only", "[bas
   }
   CHECK(names == std::set<std::string>{"count", "on", "mode", "name", "dir", "inner.scale",
                                        "inner.widths", "seed"});
+}
+
+TEST_CASE("fields: an invalid option names the field, the rule and the value", "[base][fields]") {
+  CHECK(FieldErrorMessage("PoseOptions.huber_px", -1.0, "must be > 0") ==
+        "PoseOptions.huber_px must be > 0, got -1");
+  CHECK(FieldErrorMessage("a", 0.1, "r") == "a r, got 0.1");
+  CHECK(FieldErrorMessage("a", std::nan(""), "r") == "a r, got nan");
+  CHECK(FieldErrorMessage("a", -HUGE_VAL, "r") == "a r, got -inf");
+  CHECK_THROWS_AS(ThrowFieldError("a", 1.0, "r"), std::invalid_argument);
 }

@@ -20,6 +20,7 @@
 #include "geometry/mesh.h"
 #include "geometry/shapes.h"
 #include "storage/run_database.h"
+#include "tests/wait.h"
 
 using namespace gs360;
 using Json = nlohmann::json;
@@ -42,12 +43,13 @@ httplib::Result PostJson(httplib::Client& c, const std::string& path, const Json
 template <typename Pred>
 Json WaitRun(httplib::Client& c, std::int64_t id, Pred pred) {
   Json run;
-  for (int i = 0; i < 1200; ++i) {
+  const auto done = [&] {
     run = Body(c.Get(("/api/v1/runs/" + std::to_string(id)).c_str()));
-    if (pred(run)) return run;
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    return pred(run);
+  };
+  if (!test::WaitUntil(done, std::chrono::seconds(60))) {
+    FAIL("timed out waiting; last view " << run.dump());
   }
-  FAIL("timed out waiting; last view " << run.dump());
   return run;
 }
 
@@ -183,9 +185,7 @@ TEST_CASE("api: plan, start, pause and resume a run, and two resumes at once get
     }
     return false;
   };
-  for (int i = 0; i < 500 && !seen_done(); ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  }
+  test::WaitUntil(seen_done, std::chrono::seconds(10));
   stop_stream = true;
   d.daemon->events().Publish("log", {{"run", 1}});  // the stream's next chunk ends it
   stream.join();
