@@ -10,6 +10,7 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "base/field_error.h"
 #include "geometry/fisheye_cv.h"
 
 namespace gs360 {
@@ -17,9 +18,7 @@ namespace {
 
 template <typename T>
 [[noreturn]] void ThrowField(const char* field, T value, const char* what) {
-  std::ostringstream s;
-  s << "IntrinsicsOptions." << field << " " << what << ", got " << value;
-  throw std::invalid_argument(s.str());
+  ThrowFieldError(std::string("IntrinsicsOptions.") + field, static_cast<double>(value), what);
 }
 
 std::string Fixed(double v, int digits = 3) {

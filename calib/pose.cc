@@ -16,6 +16,7 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "base/field_error.h"
 #include "geometry/fisheye_cv.h"
 
 namespace gs360 {
@@ -23,9 +24,7 @@ namespace {
 
 template <typename T>
 [[noreturn]] void ThrowField(const char* field, T value, const char* what) {
-  std::ostringstream s;
-  s << "PoseOptions." << field << " " << what << ", got " << value;
-  throw std::invalid_argument(s.str());
+  ThrowFieldError(std::string("PoseOptions.") + field, static_cast<double>(value), what);
 }
 
 // pose(w, dt): rotation exp(w) R, translation t + dt (w rotates about the camera centre).

@@ -12,6 +12,8 @@
 #include <string>
 #include <thread>
 
+#include "base/field_error.h"
+
 namespace gs360 {
 namespace {
 
@@ -335,10 +337,6 @@ double EvaluateLossWithPool(Pool& pool, const Mlp& mlp, const Eigen::MatrixXf& x
   return total / (static_cast<double>(n) * static_cast<double>(y.rows()));
 }
 
-std::string Field(const char* name, double value) {
-  return std::string("TrainOptions.") + name + " = " + std::to_string(value);
-}
-
 }  // namespace
 
 std::string_view ToString(LearningRateSchedule s) {
@@ -374,39 +372,36 @@ void TrainOptions::Check() const {
   } catch (const std::invalid_argument& e) {
     throw std::invalid_argument(std::string("TrainOptions.fourier: ") + e.what());
   }
-  if (batch_size < 1)
-    throw std::invalid_argument(Field("batch_size", batch_size) + " must be >= 1");
+  if (batch_size < 1) ThrowFieldError("TrainOptions.batch_size", batch_size, "must be >= 1");
   if (!std::isfinite(learning_rate) || learning_rate <= 0.0) {
-    throw std::invalid_argument(Field("learning_rate", learning_rate) + " must be > 0");
+    ThrowFieldError("TrainOptions.learning_rate", learning_rate, "must be > 0");
   }
   if (!(beta1 >= 0.0 && beta1 < 1.0)) {
-    throw std::invalid_argument(Field("beta1", beta1) + " must be in [0, 1)");
+    ThrowFieldError("TrainOptions.beta1", beta1, "must be in [0, 1)");
   }
   if (!(beta2 >= 0.0 && beta2 < 1.0)) {
-    throw std::invalid_argument(Field("beta2", beta2) + " must be in [0, 1)");
+    ThrowFieldError("TrainOptions.beta2", beta2, "must be in [0, 1)");
   }
   if (!std::isfinite(epsilon) || epsilon <= 0.0) {
-    throw std::invalid_argument(Field("epsilon", epsilon) + " must be > 0");
+    ThrowFieldError("TrainOptions.epsilon", epsilon, "must be > 0");
   }
   if (!(min_learning_rate >= 0.0 && min_learning_rate <= learning_rate)) {
-    throw std::invalid_argument(Field("min_learning_rate", min_learning_rate) +
-                                " must be in [0, learning_rate]");
+    ThrowFieldError("TrainOptions.min_learning_rate", min_learning_rate,
+                    "must be in [0, learning_rate]");
   }
   if (!(plateau_factor > 0.0 && plateau_factor < 1.0)) {
-    throw std::invalid_argument(Field("plateau_factor", plateau_factor) + " must be in (0, 1)");
+    ThrowFieldError("TrainOptions.plateau_factor", plateau_factor, "must be in (0, 1)");
   }
   if (plateau_epochs < 1) {
-    throw std::invalid_argument(Field("plateau_epochs", plateau_epochs) + " must be >= 1");
+    ThrowFieldError("TrainOptions.plateau_epochs", plateau_epochs, "must be >= 1");
   }
   if (!(plateau_threshold >= 0.0 && plateau_threshold < 1.0)) {
-    throw std::invalid_argument(Field("plateau_threshold", plateau_threshold) +
-                                " must be in [0, 1)");
+    ThrowFieldError("TrainOptions.plateau_threshold", plateau_threshold, "must be in [0, 1)");
   }
-  if (max_epochs < 1)
-    throw std::invalid_argument(Field("max_epochs", max_epochs) + " must be >= 1");
-  if (patience < 0) throw std::invalid_argument(Field("patience", patience) + " must be >= 0");
+  if (max_epochs < 1) ThrowFieldError("TrainOptions.max_epochs", max_epochs, "must be >= 1");
+  if (patience < 0) ThrowFieldError("TrainOptions.patience", patience, "must be >= 0");
   if (threads < 1 || threads > 256) {
-    throw std::invalid_argument(Field("threads", threads) + " must be in [1, 256]");
+    ThrowFieldError("TrainOptions.threads", threads, "must be in [1, 256]");
   }
   switch (schedule) {
     case LearningRateSchedule::kConstant:

@@ -9,6 +9,8 @@
 #include <string>
 #include <vector>
 
+#include "base/field_error.h"
+
 namespace gs360 {
 namespace {
 
@@ -18,8 +20,8 @@ constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 constexpr double kMaxTrianglePx = 32.0;
 
 [[noreturn]] void Bad(const char* field, double value, const char* want) {
-  throw std::invalid_argument(std::string("HeightFieldOptions.") + field + " must be " + want +
-                              ", got " + std::to_string(value));
+  ThrowFieldError(std::string("HeightFieldOptions.") + field, value,
+                  std::string("must be ") + want);
 }
 
 // The undeformed surface on the region's grid: point, normal and derivatives along u and v.

@@ -9,13 +9,13 @@
 #include <string>
 #include <unordered_map>
 
+#include "base/field_error.h"
+
 namespace gs360 {
 namespace {
 
 [[noreturn]] void ThrowField(const std::string& field, double value, const std::string& why) {
-  std::ostringstream os;
-  os << "GelDeformationOptions." << field << " = " << value << ": " << why;
-  throw std::invalid_argument(os.str());
+  ThrowFieldError("GelDeformationOptions." + field, value, why);
 }
 
 // Barycentrics (of a, b, c) of the point of triangle (a, b, c) closest to p (Ericson,

@@ -9,6 +9,7 @@
 #include <string>
 #include <thread>
 
+#include "base/field_error.h"
 #include "sim/camera_random.h"
 #include "sim/ground_truth.h"
 
@@ -26,9 +27,7 @@ constexpr std::array<double, 3> kDriftWeights = {0.6, 0.3, 0.1};
 constexpr double kDeformedThreshold = 1e-4;
 
 [[noreturn]] void ThrowField(const std::string& field, double value, const std::string& why) {
-  std::ostringstream os;
-  os << field << " = " << value << ": " << why;
-  throw std::invalid_argument(os.str());
+  ThrowFieldError(field, value, why);
 }
 
 double SecondsSince(Clock::time_point start) {
