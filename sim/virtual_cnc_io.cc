@@ -6,6 +6,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <iostream>
 #include <random>
 
 #include "sim/virtual_cnc_impl.h"

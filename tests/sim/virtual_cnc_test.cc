@@ -720,7 +720,6 @@ TEST_CASE("Fault: USB unplug and replug under a new path with and without power 
   keep.power_loss = false;
   keep.replug_after = std::chrono::milliseconds(100);
   cnc.Unplug(keep);
-  const Clock::time_point deadline = Clock::now() + std::chrono::seconds(3);
   WaitFor([&] { return cnc.Plugged(); }, 3.0);
   CHECK(cnc.PtyPath() != second);
   Host again(cnc.PtyPath());
