@@ -27,11 +27,12 @@ using Clock = std::chrono::steady_clock;
 std::string Fmt3(const Eigen::Vector3d& v);
 
 // The machine position a motion line of ours sends the tool to ("G53 G0|G1 X.. Y.. Z..", all
-// three axes); nullopt for any other line.
+// three axes, after "G90 " in a press's approach line); nullopt for any other line.
 inline std::optional<Eigen::Vector3d> MotionTarget(const std::string& line) {
   const auto x = line.find(" X");
+  const std::size_t start = line.rfind("G90 ", 0) == 0 ? 4 : 0;
   double v[3];
-  if (line.rfind("G53 G", 0) != 0 || x == std::string::npos ||
+  if (line.compare(start, 5, "G53 G") != 0 || x == std::string::npos ||
       std::sscanf(line.c_str() + x, " X%lf Y%lf Z%lf", &v[0], &v[1], &v[2]) != 3) {
     return std::nullopt;
   }
@@ -98,10 +99,12 @@ class RunSession {
   void CompareFirmware(const GrblMachineInfo& info);
   // Knows where the tool is before anything moves (run_engine.h "Position"); `sent`: the last
   // motion sent (start, then targets; empty if none): an idle controller must stand on one of
-  // its points. Asks the user when it cannot know; otherwise leaves the tool out of the gel,
-  // homed if configured, with the preamble sent. Throws std::runtime_error when the controller
-  // fails (no status, homing failed).
-  std::optional<Ask> EstablishPosition(const std::vector<Eigen::Vector3d>& sent);
+  // its points, or, with `homing_sent` (a $H sent after it), wherever the homing cycle left it.
+  // Asks the user when it cannot know; otherwise leaves the tool out of the gel, homed if
+  // configured, with the preamble sent. Throws std::runtime_error when the controller fails (no
+  // status, homing failed).
+  std::optional<Ask> EstablishPosition(const std::vector<Eigen::Vector3d>& sent, bool homing_sent);
+  // $H, recorded as sent (RunDatabase::MarkHomingSent) before it goes out; throws when it fails.
   void Home();
   // $X after the user confirmed the position, said in the run's events; throws when refused.
   void Unlock();
@@ -161,6 +164,7 @@ class RunSession {
   std::optional<Ask> ask_;  // set by a recovery that needs the user: the run stops and asks
   // The motion sent since the last sync: where it started, then each target (machine frame).
   std::vector<Eigen::Vector3d> last_path_;
+  bool homing_sent_ = false;               // a $H sent after last_path_ (RunRecord::homing_sent)
   cv::Mat session_reference_;              // the latest no-contact frame of this session
   std::unique_ptr<FisheyeCamera> camera_;  // the nominal camera, for where a press should show
   std::unique_ptr<GrblClient> client_;

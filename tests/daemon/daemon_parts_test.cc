@@ -13,6 +13,7 @@
 #include "daemon/event_hub.h"
 #include "daemon/instance_lock.h"
 #include "daemon/run_engine.h"
+#include "daemon/run_session.h"
 #include "daemon/safety.h"
 #include "gcode/probe_program.h"
 #include "rig_fixture.h"
@@ -96,6 +97,37 @@ TEST_CASE("the safety guard refuses lines outside the limits, naming the limit",
   // A straight move that would cut through the sensor is caught along the way.
   const Eigen::Vector3d other = travel->MachineFromBall(Eigen::Vector3d(-13.0, 0.0, 15.0));
   CHECK(guard.CheckLine(MachineMoveLine(other), approach).has_value());
+}
+
+TEST_CASE("every motion line of a probe's program is recorded with its target", "[daemon]") {
+  test::RigFixture f("targets", 40, 0.0);
+  RunEngine engine(f.db);
+  ProbePlan plan;
+  engine.CreateRun(f.config, &plan);
+  REQUIRE(plan.probes.size() > 2);
+  PlannedProbe p = plan.probes[1];
+  p.travel_machine = {p.approach_machine + Eigen::Vector3d(0.0, 0.0, 5.0)};
+  p.reference_before = true;
+  const ProbeProgram program = MakeProbeProgram(p, f.config.plan);
+  std::vector<Eigen::Vector3d> targets;
+  for (const auto* part : {&program.reference, &program.press, &program.retract}) {
+    for (const std::string& line : *part) {
+      const auto target = session::MotionTarget(line);
+      const bool moves =
+          line.find(" G0 ") != std::string::npos || line.find(" G1 ") != std::string::npos;
+      INFO(line);
+      CHECK(target.has_value() == moves);  // G4 dwells are not motion
+      if (target) targets.push_back(*target);
+    }
+  }
+  // Travel, approach (a "G90 G53 G0" line), press, back to the approach.
+  REQUIRE(targets.size() == 4);
+  CHECK(targets[0].isApprox(p.travel_machine[0], 1e-3));
+  CHECK((targets[1] - p.approach_machine).norm() < 1e-3);
+  CHECK((targets[2] - p.press_machine).norm() < 1e-3);
+  CHECK((targets[3] - p.approach_machine).norm() < 1e-3);
+  CHECK_FALSE(session::MotionTarget("G91 G0 Z5"));
+  CHECK_FALSE(session::MotionTarget("G53 G0 X1 Y2"));
 }
 
 TEST_CASE("a plan that breaks a safety limit is refused at creation, naming the probe",
