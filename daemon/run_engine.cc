@@ -297,6 +297,7 @@ void RunSession::SettleAndRecord() {
       !last_path_.empty()) {
     last_path_ = {last_path_.back()};
     db_.SetCommandedPath(run_id_, last_path_);
+    homing_sent_ = false;
   }
 }
 
@@ -332,7 +333,8 @@ RunReport RunSession::Run() {
   source_ = OpenFrameSource(config_.camera.uri, config_.camera.controls);
   source_->Start();
   ConnectMachine();
-  if (auto ask = EstablishPosition(db_.GetRun(run_id_)->commanded_path)) {
+  const RunRecord run = *db_.GetRun(run_id_);
+  if (auto ask = EstablishPosition(run.commanded_path, run.homing_sent)) {
     return Awaiting(*ask);
   }
   db_.SetRunState(run_id_, RunState::kRunning);

@@ -67,19 +67,28 @@ void RunSession::CompareFirmware(const GrblMachineInfo& info) {
 
 void RunSession::Home() {
   Publish("homing");
+  // Killed while it homes, the next session finds the tool off every point of the last path.
+  db_.MarkHomingSent(run_id_);
+  homing_sent_ = true;
   const GrblReply reply = client_->Home();
   if (!reply.Ok()) {
     throw std::runtime_error("homing failed at " + config_.machine.uri + ": " + reply.Describe());
   }
 }
 
-std::optional<Ask> RunSession::EstablishPosition(const std::vector<Eigen::Vector3d>& sent) {
+std::optional<Ask> RunSession::EstablishPosition(const std::vector<Eigen::Vector3d>& sent,
+                                                 bool homing_sent) {
   Publish("verifying");
   const bool confirmed = overrides_.confirm == "position";
   const std::string resume =
       "`gs360 run resume " + std::to_string(run_id_) + " --confirm position`";
-  // Lines sent while it restarted may run after its welcome: let them finish before looking.
-  if (!client_->Alarmed()) client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
+  // Lines sent while it restarted may run after its welcome, a homing cycle may still be on its
+  // way: let them finish before looking.
+  if (!client_->Alarmed()) {
+    client_->WaitIdle(
+        homing_sent ? std::max(Ms(config_.engine.sync_timeout_s), client_->Options().homing_timeout)
+                    : Ms(config_.engine.sync_timeout_s));
+  }
   const std::uint64_t stray = client_->StrayRepliesSinceWelcome();
   if (client_->Alarmed() || stray > 0) {
     const auto alarm = client_->LastAlarm();
@@ -127,18 +136,18 @@ std::optional<Ask> RunSession::EstablishPosition(const std::vector<Eigen::Vector
     // one of the last motion's lines took it (or where it started).
     double nearest = std::numeric_limits<double>::infinity();
     for (const Eigen::Vector3d& p : sent) nearest = std::min(nearest, (reported - p).norm());
-    if (!confirmed && !sent.empty() && nearest > config_.machine.verify_tolerance_mm) {
+    // Idle and not in alarm after a $H: it either never read the $H (and stands on the path) or
+    // finished the cycle, which set its position; an interrupted cycle ends in alarm.
+    const bool homed = homing_sent && status->status.state == GrblMachineState::kIdle;
+    const bool off_path = !sent.empty() && nearest > config_.machine.verify_tolerance_mm;
+    if (!confirmed && off_path && !homed) {
       return Ask{"position",
                  "the controller reports MPos " + Fmt3(reported) +
-                     " but the tool was last sent "
-                     "to " +
-                     Fmt3(sent.back()) + " (" + FormatFixed(nearest, 3) +
-                     " mm from any "
-                     "point of that motion): it may have restarted or been moved by hand. Nothing "
-                     "was moved. Check the machine, then " +
-                     resume +
-                     " to take its position as "
-                     "true" +
+                     " but the tool was last sent to " + Fmt3(sent.back()) + " (" +
+                     FormatFixed(nearest, 3) +
+                     " mm from any point of that motion): it may have restarted or been moved by "
+                     "hand. Nothing was moved. Check the machine, then " +
+                     resume + " to take its position as true" +
                      (config_.machine.home ? " (it homes)." : ".")};
     }
     if (!confirmed && sent.empty() && !config_.machine.home) {
@@ -146,10 +155,14 @@ std::optional<Ask> RunSession::EstablishPosition(const std::vector<Eigen::Vector
                                  Fmt3(reported) + ") is where the tool really is, then " + resume +
                                  "."};
     }
-    if (!sent.empty() && !confirmed) {
+    if (!confirmed && off_path) {
       Event(EventLevel::kInfo,
-            "position verified: the controller stands where the last motion "
-            "sent took it, " +
+            "the controller finished the homing cycle sent before the daemon stopped: it stands "
+            "at " +
+                Fmt3(reported));
+    } else if (!confirmed && !sent.empty()) {
+      Event(EventLevel::kInfo,
+            "position verified: the controller stands where the last motion sent took it, " +
                 Fmt3(reported));
     }
     client_->MarkPositionTrusted();
@@ -251,6 +264,7 @@ void RunSession::Commanded(const std::vector<std::string>& lines, const Eigen::V
   if (last_path_.empty() || (last_path_.back() - from).norm() > 1e-6) last_path_.push_back(from);
   last_path_.insert(last_path_.end(), targets.begin(), targets.end());
   db_.SetCommandedPath(run_id_, last_path_);
+  homing_sent_ = false;
 }
 
 void RunSession::ReturnToSafety(const PlannedProbe& planned) {
@@ -289,7 +303,7 @@ bool RunSession::Recover(const Step& step) {
   }
   try {
     // The controller may have reset: where the tool is must be known before anything moves.
-    if (auto ask = EstablishPosition(last_path_)) {
+    if (auto ask = EstablishPosition(last_path_, homing_sent_)) {
       ask_ = std::move(ask);
       return false;
     }

@@ -67,7 +67,7 @@ void RequireValidFrame(const EncodedFrame& f) {
 
 #define GS360_RUN_COLUMNS                                                                      \
   "id, name, config_json, mesh_hash, state, created_at, started_at, updated_at, finished_at, " \
-  "active_s, running_since, last_error, awaiting, commanded_path"
+  "active_s, running_since, last_error, awaiting, commanded_path, homing_sent"
 
 RunRecord ReadRun(const Stmt& s) {
   RunRecord r;
@@ -92,6 +92,7 @@ RunRecord ReadRun(const Stmt& s) {
     xyz.imbue(std::locale::classic());
     if (xyz >> p.x() >> p.y() >> p.z()) r.commanded_path.push_back(p);
   }
+  r.homing_sent = s.GetInt(14) != 0;
   return r;
 }
 
@@ -550,8 +551,16 @@ void RunDatabase::SetCommandedPath(std::int64_t run_id, std::span<const Eigen::V
   const Impl& c = *impl_;
   Transaction tx(c, Transaction::kWrite);
   c.RequireRun(run_id);
-  Stmt s = c.Prepare("UPDATE runs SET commanded_path = ? WHERE id = ?");
+  Stmt s = c.Prepare("UPDATE runs SET commanded_path = ?, homing_sent = 0 WHERE id = ?");
   s.Text(1, text.str()).Int(2, run_id).Run();
+  tx.Commit();
+}
+
+void RunDatabase::MarkHomingSent(std::int64_t run_id) {
+  const Impl& c = *impl_;
+  Transaction tx(c, Transaction::kWrite);
+  c.RequireRun(run_id);
+  c.Prepare("UPDATE runs SET homing_sent = 1 WHERE id = ?").Int(1, run_id).Run();
   tx.Commit();
 }
 

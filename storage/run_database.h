@@ -111,6 +111,9 @@ struct RunRecord {
   // The last motion it sent: where it started, then each target (machine frame, MPos, mm);
   // empty before the first.
   std::vector<Eigen::Vector3d> commanded_path;
+  // A homing cycle ($H) was sent after that motion, and no motion since: the tool may stand
+  // anywhere between the path's end and the machine's home.
+  bool homing_sent = false;
 };
 
 // One planned probe, as the planner emits it.
@@ -250,7 +253,10 @@ class RunDatabase {
   void SetRunAwaiting(std::int64_t run_id, std::string_view what, std::string_view message);
   // The last motion the run sent (RunRecord::commanded_path). Throws std::invalid_argument for a
   // non-finite position, kNotFound.
+  // Also clears RunRecord::homing_sent: the path is the newest motion.
   void SetCommandedPath(std::int64_t run_id, std::span<const Eigen::Vector3d> path);
+  // Records a homing cycle about to be sent (RunRecord::homing_sent). Throws kNotFound.
+  void MarkHomingSent(std::int64_t run_id);
   // Removes the run and everything of it (probes, frames, events, artifacts; its models stay,
   // detached). Its id is never given to another run. Throws kNotFound, kInvalidState while it is
   // kRunning.

@@ -116,10 +116,17 @@ ALTER TABLE runs ADD COLUMN awaiting TEXT NOT NULL DEFAULT '';
 ALTER TABLE runs ADD COLUMN commanded_path TEXT NOT NULL DEFAULT '';
 )sql";
 
+// A homing cycle sent after the commanded path: the controller may stand anywhere on its way
+// home, or at home, when the next session looks.
+constexpr std::string_view kVersion4 = R"sql(
+ALTER TABLE runs ADD COLUMN homing_sent INTEGER NOT NULL DEFAULT 0;
+)sql";
+
 constexpr std::array<SchemaMigration, kSchemaVersion> kMigrations = {{
     {1, kVersion1},
     {2, kVersion2},
     {3, kVersion3},
+    {4, kVersion4},
 }};
 
 }  // namespace

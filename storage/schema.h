@@ -16,7 +16,7 @@
 
 namespace gs360 {
 
-inline constexpr int kSchemaVersion = 3;
+inline constexpr int kSchemaVersion = 4;
 inline constexpr std::int32_t kApplicationId = 0x47533336;  // "GS36"
 
 struct SchemaMigration {

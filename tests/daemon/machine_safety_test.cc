@@ -206,6 +206,29 @@ TEST_CASE("a controller restarted while the ball may be in the gel is not homed 
   CHECK(engine.Execute(run_id, confirm).outcome == RunOutcome::kDone);
 }
 
+TEST_CASE("a session killed while it homes: the next trusts the finished cycle, not a stray move",
+          "[daemon][safety]") {
+  RigFixture f("homekill", 30, 0.0);
+  RunEngine engine(f.db);
+  const auto run_id = engine.CreateRun(f.config);
+  AtProbe(engine, 3, [&] { engine.RequestStop(); });
+  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
+  engine.SetProgressCallback({});
+  // What the killed session's $H did: the machine homed, away from every point of the path.
+  ByHand(f, {"$H"});
+  SECTION("the $H was recorded: resumed, said in the events") {
+    RunDatabase(f.db).MarkHomingSent(run_id);
+    CHECK(engine.Execute(run_id).outcome == RunOutcome::kDone);
+    CHECK_THAT(Events(f, run_id), Contains("finished the homing cycle sent before"));
+    CheckOneAttemptEach(f, run_id);
+  }
+  SECTION("without it the same position is a stray move: asked") {
+    const RunReport asked = engine.Execute(run_id);
+    CHECK(asked.outcome == RunOutcome::kAwaiting);
+    CHECK_THAT(asked.message, Contains("mm from any point of that motion"));
+  }
+}
+
 TEST_CASE("a reset at the bottom of a press is recovered without spending an attempt",
           "[daemon][safety]") {
   RigFixture f("dwellreset", 30, 0.0);

@@ -552,6 +552,26 @@ TEST_CASE("last_error is kept until the run runs again, and DeleteRun removes a 
   CHECK_THROWS_AS(db.SetRunState(other, RunState::kRunning), StorageError);
 }
 
+TEST_CASE("the commanded path round-trips and a homing cycle is marked until the next motion",
+          "[storage][db]") {
+  test::TempDir dir;
+  RunDatabase db(dir / "rig.gs360db");
+  const std::int64_t run = db.CreateRun("{}", "h");
+  CHECK(db.GetRun(run)->commanded_path.empty());
+  CHECK_FALSE(db.GetRun(run)->homing_sent);
+  const std::vector<Eigen::Vector3d> path = {{-1.0, -2.5, -3.25}, {-140.125, -88.0, -32.9375}};
+  db.SetCommandedPath(run, path);
+  CHECK(db.GetRun(run)->commanded_path == path);
+  db.MarkHomingSent(run);
+  CHECK(db.GetRun(run)->homing_sent);
+  CHECK(db.GetRun(run)->commanded_path == path);  // the path the cycle started from is kept
+  db.SetCommandedPath(run, std::vector<Eigen::Vector3d>{{-1.0, -1.0, -1.0}});
+  CHECK_FALSE(db.GetRun(run)->homing_sent);
+  const std::vector<Eigen::Vector3d> bad = {{0.0, std::nan(""), 0.0}};
+  CHECK_THROWS_AS(db.SetCommandedPath(run, bad), std::invalid_argument);
+  CHECK_THROWS_AS(db.MarkHomingSent(run + 1), StorageError);
+}
+
 TEST_CASE("RunDatabaseOptions::Check names the field and the value", "[storage][db]") {
   CHECK_NOTHROW(RunDatabaseOptions{}.Check());
   RunDatabaseOptions o;
