@@ -10,6 +10,7 @@
 #include <unistd.h>
 
 #include <atomic>
+#include <cstdlib>
 #include <cstring>
 #include <random>
 #include <set>
@@ -63,10 +64,14 @@ TEST_CASE(
   }
   REQUIRE(total >= 150);
 
-  std::mt19937 rng(2026);
+  // GS360_KILL_SEED and GS360_KILL_ROUNDS replay other kill schedules (scripts/kill_loop.sh).
+  const char* seed = std::getenv("GS360_KILL_SEED");
+  const char* rounds_env = std::getenv("GS360_KILL_ROUNDS");
+  std::mt19937 rng(seed ? static_cast<unsigned>(std::stoul(seed)) : 2026u);
+  const int rounds = rounds_env ? std::stoi(rounds_env) : 6;
   std::uniform_int_distribution<int> delay_ms(1500, 6000);
   std::int64_t last_captured = 0;
-  for (int round = 0; round < 6; ++round) {
+  for (int round = 0; round < rounds; ++round) {
     auto daemon = test::StartDaemonProcess(f);
     cli::DaemonClient client(daemon->url(), "");
     // A run the previous daemon left running shows as interrupted, never running.
@@ -74,6 +79,10 @@ TEST_CASE(
     CHECK(before["state"] == (round == 0 ? "created" : "interrupted"));
     client.Post(std::string("/api/v1/runs/1/") + (round == 0 ? "start" : "resume"));
     std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms(rng)));
+    // Nothing moved the machine by hand: a resume never needs the user to confirm its position.
+    const Json during = client.Get("/api/v1/runs/1");
+    INFO("round " << round << ": " << during.dump());
+    CHECK(during["awaiting"].is_null());
     daemon->Kill();
     RunDatabase db = ReadOnly(db_path);
     const auto captured = db.CountProbes(1).captured;
