@@ -37,7 +37,7 @@ asan_exclude=(
   # 65 s: brute force against the BVH over thousands of rays; the other Bvh tests cover the code.
   '^geometry:Bvh closest hit equals brute force on thousands of random rays$'
 )
-# TSan: the tests whose code runs threads, by name: a TSan process takes 1-2 s to start and a
+# TSan: the tests whose code runs threads, by name: a TSan process takes 2-5 s to start and a
 # run on the virtual rig ~1 min, so rather than whole modules these, one or a few per threaded
 # part (the others exercise the same threads again, or none):
 tsan_targets="test_storage test_gcode test_sim test_capture test_recon test_calib test_daemon"
