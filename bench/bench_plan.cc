@@ -14,7 +14,7 @@
 #include <string>
 #include <vector>
 
-#include "gcode/plan.h"
+#include "plan/plan.h"
 
 using namespace gs360;
 

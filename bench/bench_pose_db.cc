@@ -171,370 +171,439 @@ void AddOptions(CLI::App& app, Args& args) {
                  "write pose_dump_PLAN_INDEX.png around this probe's impression (repeatable)");
 }
 
+RunDatabaseOptions ReadOnly() {
+  RunDatabaseOptions ro;
+  ro.read_only = true;
+  return ro;
+}
+
+// What the reports read: the run, the simulated rig it was made with (its truth) and one row per
+// captured probe.
+struct Bench {
+  const Args& args;
+  RunDatabase db;
+  CalibrationInputs inputs;
+  std::shared_ptr<const SimRig> rig;
+  FisheyeCamera true_camera;
+  Rigid3d true_pose;
+  FisheyeCamera camera;  // the run's calibrated intrinsics, else the nominal ones
+  std::vector<Row> rows;
+  std::vector<std::int64_t> frame_ids, ref_ids;  // per row: the press and its reference frame
+};
+
+// Calibrated intrinsics: the run's latest intrinsics artifact.
+std::optional<FisheyeIntrinsics> CalibratedIntrinsics(const RunDatabase& db, std::int64_t run_id) {
+  std::optional<FisheyeIntrinsics> calibrated;
+  for (const ArtifactRecord& a : db.ListArtifacts(run_id)) {
+    if (a.stage != "intrinsics" || calibrated) continue;
+    if (a.metrics_json.find("checkerboards") == std::string::npos) continue;
+    const auto full = db.GetArtifact(run_id, a.stage, a.input_hash);
+    calibrated = IntrinsicsFromJson(
+        nlohmann::json::parse(std::string(full->blob.begin(), full->blob.end())));
+  }
+  return calibrated;
+}
+
+Bench LoadBench(const Args& args) {
+  RunDatabase db(args.db_path, ReadOnly());
+  const RunConfig config = StoredRunConfig(db, args.run_id);
+  CalibrationInputs inputs = CalibrationInputsFor(config);
+  auto rig = std::make_shared<const SimRig>(cli::SimRigOptionsFor(config.rig, args.seed));
+  const FisheyeCamera true_camera = SimGroundTruth::TrueCamera(*rig);
+  const Rigid3d true_pose = SimGroundTruth::TrueCamFromSensor(*rig);
+  const std::optional<FisheyeIntrinsics> calibrated = CalibratedIntrinsics(db, args.run_id);
+  const FisheyeCamera camera(calibrated.value_or(inputs.nominal_intrinsics));
+  std::printf("bench_pose_db: %s run %lld (%s), intrinsics %s\n", args.db_path.c_str(),
+              static_cast<long long>(args.run_id), inputs.sensor.c_str(),
+              calibrated ? "calibrated (artifact)" : "nominal");
+  return Bench{args,
+               std::move(db),
+               std::move(inputs),
+               std::move(rig),
+               true_camera,
+               true_pose,
+               camera,
+               {},
+               {},
+               {}};
+}
+
+// One row per captured probe, as calib/pipeline.cc builds them: MPos -> ball centre, nearest
+// reference frame.
+void LoadRows(Bench& b) {
+  const std::int64_t run_id = b.args.run_id;
+  const Rigid3d sensor_from_machine = b.inputs.machine_from_sensor.Inverse();
+  for (const CapturedProbe& cp : b.db.ListCapturedProbes(run_id)) {
+    Row r;
+    r.plan_index = cp.probe.plan_index;
+    r.point = cp.probe.plan.point_sensor;
+    r.normal = cp.probe.plan.normal_sensor;
+    const Eigen::Vector3d mpos = cp.probe.machine_position.value_or(cp.probe.plan.press_machine);
+    r.ball = sensor_from_machine * (mpos + b.inputs.tool_offset);
+    r.frame_time = cp.frame_time;
+    const auto ref = b.db.NearestReferenceFrame(run_id, cp.frame_time);
+    r.ref_time = ref->timestamp;
+    b.rows.push_back(r);
+    b.frame_ids.push_back(cp.frame_id);
+    b.ref_ids.push_back(ref->id);
+  }
+  std::printf("  %zu captured probes\n", b.rows.size());
+}
+
+// Measures rows t, t + threads, ... on its own database connection (and simulator).
+void MeasureStride(Bench& b, int t, int threads) {
+  const ImpressionCentroidOptions& impression = b.args.impression;
+  const std::size_t n = b.rows.size();
+  RunDatabase conn(b.args.db_path, ReadOnly());
+  std::map<std::int64_t, cv::Mat> refs;
+  std::unique_ptr<TactileCamera> sim;
+  cv::Mat sim_ref;
+  if (b.args.simulate) {
+    TactileCameraOptions to;
+    to.threads = 1;
+    sim = std::make_unique<TactileCamera>(b.rig, to);
+    sim_ref = sim->RenderReference(900000 + static_cast<std::uint64_t>(t));
+  }
+  for (std::size_t k = static_cast<std::size_t>(t); k < n; k += threads) {
+    Row& r = b.rows[k];
+    const cv::Mat press = conn.LoadFrame(b.frame_ids[k]);
+    auto it = refs.find(b.ref_ids[k]);
+    if (it == refs.end()) it = refs.emplace(b.ref_ids[k], conn.LoadFrame(b.ref_ids[k])).first;
+    if (const auto region = FindImpressionRegion(press, it->second, impression)) {
+      r.found = true;
+      r.centroid = region->centroid;
+      r.peak = region->peak_dn;
+      r.area = region->area_px;
+    }
+    if (sim) {
+      const cv::Mat p = sim->RenderAtBall(r.ball, 100 + k);
+      if (const auto region = FindImpressionRegion(p, sim_ref, impression)) {
+        r.sim_found = true;
+        r.sim_centroid = region->centroid;
+      }
+    }
+  }
+}
+
+// The per-probe measurements, from --cache when it is valid (the frame decoding is the slow part).
+void MeasureImpressions(Bench& b) {
+  const std::string& cache = b.args.cache;
+  if (!cache.empty() && LoadCache(cache, &b.rows, b.args.simulate)) return;
+  const auto t0 = Clock::now();
+  const int threads = 2;
+  std::vector<std::thread> pool;
+  for (int t = 1; t < threads; ++t) pool.emplace_back([&b, t] { MeasureStride(b, t, threads); });
+  MeasureStride(b, 0, threads);
+  for (auto& th : pool) th.join();
+  std::printf("  impressions in %.1f s\n", Seconds(t0));
+  if (!cache.empty()) SaveCache(cache, b.rows);
+}
+
+// Truth per probe.
+void AddTruth(const SurfaceMap& true_map, Bench& b) {
+  const FisheyeCamera& true_camera = b.true_camera;
+  const Rigid3d& true_pose = b.true_pose;
+  for (Row& r : b.rows) {
+    r.proj = true_camera.ProjectUnchecked(true_pose * r.point);
+    const ProbeRender pr =
+        RenderProbe(true_map, true_camera, true_pose * r.ball, b.inputs.ball_radius);
+    r.hull = HullCentroid(pr, &r.hull_ok);
+    const Eigen::Vector3d c = true_pose * r.point;
+    const Eigen::Vector3d n_cam = true_pose.RotateDirection(r.normal);
+    r.view_deg = std::acos(std::abs(n_cam.dot(c.normalized()))) * kRadToDeg;
+    r.fin_mm = std::min(std::abs(r.point.x()), std::abs(r.point.y()));
+    r.azimuth_deg = std::atan2(r.point.y(), r.point.x()) * kRadToDeg;
+  }
+}
+
+struct Observations {
+  std::vector<PoseObservation> stored;  // the stored-frame centroids
+  std::vector<const Row*> rows;         // per stored observation
+  std::vector<PoseObservation> truth;   // the same probes at their true hull centroids
+  std::vector<PoseObservation> sim;     // the same probes at the simulator's centroids
+};
+
+// Observations as the pipeline builds them.
+Observations BuildObservations(const std::vector<Row>& rows) {
+  Observations obs;
+  for (const Row& r : rows) {
+    if (!r.found) continue;
+    PoseObservation o;
+    o.probe_index = r.plan_index;
+    o.contact_point_sensor = r.point;
+    o.contact_normal_sensor = r.normal;
+    o.ball_center_sensor = r.ball;
+    o.centroid_px = r.centroid;
+    obs.stored.push_back(o);
+    obs.rows.push_back(&r);
+    if (r.hull_ok) {
+      o.centroid_px = r.hull;
+      obs.truth.push_back(o);
+    }
+    if (r.sim_found) {
+      o.centroid_px = r.sim_centroid;
+      obs.sim.push_back(o);
+    }
+  }
+  return obs;
+}
+
+using RowKey = double (*)(const Row&);
+using RowCentroid = Eigen::Vector2d (*)(const Row&);
+
+// Residual of the observed centroid against the true rigid hull centroid, in bins of `key`.
+void PrintResidualBins(const Bench& b, const char* what, RowKey key,
+                       const std::vector<double>& edges, RowCentroid centroid_of) {
+  const FisheyeIntrinsics& intrinsics = b.true_camera.intrinsics();
+  std::printf("  observed - true hull centroid, by %s:\n", what);
+  for (std::size_t bin = 0; bin + 1 < edges.size(); ++bin) {
+    std::vector<double> norms;
+    Eigen::Vector2d mean = Eigen::Vector2d::Zero();
+    Eigen::Vector2d radial_mean = Eigen::Vector2d::Zero();
+    for (const Row& r : b.rows) {
+      if (!r.found || !r.hull_ok) continue;
+      const double k = key(r);
+      if (k < edges[bin] || k >= edges[bin + 1]) continue;
+      const Eigen::Vector2d e = centroid_of(r) - r.hull;
+      norms.push_back(e.norm());
+      mean += e;
+      // Component along the image radius (from the principal point) and across it.
+      const Eigen::Vector2d rad =
+          (r.hull - Eigen::Vector2d(intrinsics.cx, intrinsics.cy)).normalized();
+      radial_mean += Eigen::Vector2d(e.dot(rad), rad.x() * e.y() - rad.y() * e.x());
+    }
+    if (norms.empty()) continue;
+    std::sort(norms.begin(), norms.end());
+    const double m = static_cast<double>(norms.size());
+    std::printf(
+        "    [%7.1f, %7.1f): %4zu, median |e| %.2f px, p90 %.2f, mean (%.2f, %.2f), "
+        "radial %.2f, tangential %.2f\n",
+        edges[bin], edges[bin + 1], norms.size(), norms[norms.size() / 2],
+        norms[norms.size() * 9 / 10], mean.x() / m, mean.y() / m, radial_mean.x() / m,
+        radial_mean.y() / m);
+  }
+}
+
+void PrintResiduals(const Bench& b) {
+  auto stored = [](const Row& r) { return r.centroid; };
+  PrintResidualBins(
+      b, "height z (mm)", [](const Row& r) { return r.point.z(); },
+      {0, 3, 6, 10, 15, 20, 25, 28, 31}, stored);
+  PrintResidualBins(
+      b, "view angle (deg)", [](const Row& r) { return r.view_deg; },
+      {0, 20, 40, 50, 60, 70, 80, 90}, stored);
+  PrintResidualBins(
+      b, "distance to a fin plane (mm)", [](const Row& r) { return r.fin_mm; },
+      {0, 0.5, 1, 1.5, 2, 3, 5, 100}, stored);
+  PrintResidualBins(
+      b, "peak (DN)", [](const Row& r) { return r.peak; }, {0, 10, 20, 40, 80, 1000}, stored);
+  PrintResidualBins(
+      b, "frame time - reference time (s)",
+      [](const Row& r) { return std::abs(r.frame_time - r.ref_time); }, {0, 1, 2, 5, 10, 20, 1e9},
+      stored);
+  if (!b.args.simulate) return;
+  auto simc = [](const Row& r) { return r.sim_found ? r.sim_centroid : r.hull; };
+  std::printf("  --- simulator straight (same balls) ---\n");
+  PrintResidualBins(
+      b, "height z (mm)", [](const Row& r) { return r.point.z(); },
+      {0, 3, 6, 10, 15, 20, 25, 28, 31}, simc);
+  std::vector<double> d;
+  for (const Row& r : b.rows) {
+    if (r.found && r.sim_found) d.push_back((r.centroid - r.sim_centroid).norm());
+  }
+  std::sort(d.begin(), d.end());
+  if (!d.empty()) {
+    std::printf("  |stored - simulated| centroid: median %.3f px, p90 %.3f, max %.3f\n",
+                d[d.size() / 2], d[d.size() * 9 / 10], d.back());
+  }
+}
+
+// --dump PLAN_INDEX: the difference magnitude (x4 scale, 4x zoom) around the impression with the
+// observed region (green), its hull centroid (green dot) and the true rigid contact (red) and its
+// hull centroid (red dot), as PNG in the working directory.
+void DumpProbe(const Bench& b, const SurfaceMap& true_map, int plan_index) {
+  const std::size_t n = b.rows.size();
+  std::size_t k = 0;
+  while (k < n && b.rows[k].plan_index != plan_index) ++k;
+  if (k == n) return;
+  const Row& r = b.rows[k];
+  const cv::Mat press = b.db.LoadFrame(b.frame_ids[k]), ref = b.db.LoadFrame(b.ref_ids[k]);
+  const cv::Mat mag = DifferenceMagnitude(press, ref, cv::Mat(), 1.5, "dump");
+  const ProbeRender pr =
+      RenderProbe(true_map, b.true_camera, b.true_pose * r.ball, b.inputs.ball_radius);
+  double peak = 0.0;
+  cv::minMaxLoc(mag, nullptr, &peak);
+  const int half = 40, zoom = 4;
+  const cv::Rect box = cv::Rect(static_cast<int>(r.hull.x()) - half,
+                                static_cast<int>(r.hull.y()) - half, 2 * half, 2 * half) &
+                       cv::Rect(0, 0, mag.cols, mag.rows);
+  cv::Mat grey;
+  mag(box).convertTo(grey, CV_8U, 255.0 / peak);
+  cv::Mat big;
+  cv::resize(grey, big, cv::Size(), zoom, zoom, cv::INTER_NEAREST);
+  cv::cvtColor(big, big, cv::COLOR_GRAY2BGR);
+  cv::Mat crop_press;
+  cv::resize(press(box), crop_press, cv::Size(), zoom, zoom, cv::INTER_NEAREST);
+  const float thr = static_cast<float>(std::max(0.2 * peak, 3.0));
+  cv::Mat above(box.size(), CV_8U, cv::Scalar(0)), contact(box.size(), CV_8U, cv::Scalar(0));
+  for (int v = box.y; v < box.y + box.height; ++v) {
+    for (int u = box.x; u < box.x + box.width; ++u) {
+      above.at<std::uint8_t>(v - box.y, u - box.x) = mag.at<float>(v, u) > thr ? 255 : 0;
+      const int x = u - pr.roi.x, y = v - pr.roi.y;
+      if (x >= 0 && y >= 0 && x < pr.roi.width && y < pr.roi.height &&
+          pr.contact.at<std::uint8_t>(y, x)) {
+        contact.at<std::uint8_t>(v - box.y, u - box.x) = 255;
+      }
+    }
+  }
+  for (const auto& [m, col] :
+       {std::pair{above, cv::Scalar(0, 255, 0)}, std::pair{contact, cv::Scalar(0, 0, 255)}}) {
+    cv::Mat up;
+    cv::resize(m, up, cv::Size(), zoom, zoom, cv::INTER_NEAREST);
+    std::vector<std::vector<cv::Point>> contours;
+    cv::findContours(up, contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
+    cv::drawContours(big, contours, -1, col, 1);
+  }
+  auto dot = [&](const Eigen::Vector2d& p, cv::Scalar col) {
+    cv::circle(big,
+               cv::Point(static_cast<int>((p.x() - box.x + 0.5) * zoom),
+                         static_cast<int>((p.y() - box.y + 0.5) * zoom)),
+               3, col, -1);
+  };
+  dot(r.centroid, cv::Scalar(0, 255, 0));
+  dot(r.hull, cv::Scalar(0, 0, 255));
+  cv::Mat both;
+  cv::hconcat(big, crop_press, both);
+  const std::string name = "pose_dump_" + std::to_string(plan_index) + ".png";
+  cv::imwrite(name, both);
+  std::printf("  dump %d: z %.2f view %.1f peak %.1f -> %s\n", plan_index, r.point.z(), r.view_deg,
+              peak, name.c_str());
+}
+
+// The pose stage's settings and scene, shared by every estimate below.
+struct PoseSetup {
+  PoseOptions options;
+  PoseScene scene;
+};
+
+// Returns the estimate from the stored frames with the calibrated intrinsics.
+PoseResult PrintPoseEstimates(const Bench& b, const Observations& obs, const PoseSetup& setup) {
+  const PoseOptions& options = setup.options;
+  const PoseScene& scene = setup.scene;
+  const Rigid3d& nominal = b.inputs.nominal_cam_from_sensor;
+  std::printf("  true pose vs nominal: %.4f mm %.4f deg\n",
+              TranslationDifferenceMm(b.true_pose, nominal),
+              RotationDifferenceRad(b.true_pose, nominal) * kRadToDeg);
+  const PoseResult r_cal = EstimateCamFromSensor(b.camera, obs.stored, nominal, options, scene);
+  PrintPose("stored frames, calibrated intrinsics", r_cal, b.true_pose);
+  {
+    PoseOptions all = options;
+    all.max_view_angle_deg = 90.0;
+    const PoseResult r_all = EstimateCamFromSensor(b.camera, obs.stored, nominal, all, scene);
+    PrintPose("  ... without the view bound (90 deg)", r_all, b.true_pose);
+  }
+  const PoseResult r_true =
+      EstimateCamFromSensor(b.true_camera, obs.stored, nominal, options, scene);
+  PrintPose("stored frames, true intrinsics", r_true, b.true_pose);
+  const PoseResult r_hull = EstimateCamFromSensor(b.camera, obs.truth, nominal, options, scene);
+  PrintPose("true hull centroids, calibrated intrinsics", r_hull, b.true_pose);
+  if (!obs.sim.empty()) {
+    const PoseResult r_sim = EstimateCamFromSensor(b.camera, obs.sim, nominal, options, scene);
+    PrintPose("simulated frames, calibrated intrinsics", r_sim, b.true_pose);
+  }
+  return r_cal;
+}
+
+// Subsets chosen by geometry (diagnostics: which probes carry the error).
+void PrintSubsets(const Bench& b, const Observations& obs, const PoseSetup& setup) {
+  auto estimate = [&](const std::vector<PoseObservation>& sub) {
+    return EstimateCamFromSensor(b.camera, sub, b.inputs.nominal_cam_from_sensor, setup.options,
+                                 setup.scene);
+  };
+  auto subset = [&](const char* name, auto keep) {
+    std::vector<PoseObservation> sub;
+    for (std::size_t i = 0; i < obs.stored.size(); ++i) {
+      if (keep(*obs.rows[i])) sub.push_back(obs.stored[i]);
+    }
+    PrintPose(name, estimate(sub), b.true_pose);
+  };
+  subset("subset z >= 3", [](const Row& r) { return r.point.z() >= 3.0; });
+  subset("subset view < 50", [](const Row& r) { return r.view_deg < 50.0; });
+  subset("subset z >= 3, view < 50",
+         [](const Row& r) { return r.point.z() >= 3.0 && r.view_deg < 50.0; });
+  subset("subset fin >= 1.5", [](const Row& r) { return r.fin_mm >= 1.5; });
+  subset("subset area < 2000", [](const Row& r) { return r.area < 2000; });
+  for (double bound : {40.0, 45.0, 50.0, 55.0, 60.0}) {
+    const std::string name = "subset view < " + std::to_string(static_cast<int>(bound));
+    subset(name.c_str(), [bound](const Row& r) { return r.view_deg < bound; });
+  }
+  for (double power : {1.0, 2.0, 4.0}) {
+    std::vector<PoseObservation> weighted = obs.stored;
+    for (std::size_t i = 0; i < obs.stored.size(); ++i) {
+      weighted[i].weight = std::pow(std::cos(obs.rows[i]->view_deg / kRadToDeg), power);
+    }
+    const std::string name = "weight cos(view)^" + std::to_string(static_cast<int>(power));
+    PrintPose(name.c_str(), estimate(weighted), b.true_pose);
+  }
+  // Observed centroids with the TRUE model error removed where it is below 1 px (truth!).
+  subset("only |obs - true hull| <= 1 px (truth)",
+         [](const Row& r) { return !(r.hull_ok && (r.centroid - r.hull).norm() > 1.0); });
+}
+
+// Where the outliers are.
+void PrintOutliers(const std::vector<Row>& rows, const PoseResult& r_cal) {
+  std::map<int, const Row*> by_index;
+  for (const Row& r : rows) by_index[r.plan_index] = &r;
+  std::vector<double> z, fin, view;
+  for (int p : r_cal.outlier_probe_indices) {
+    const Row& r = *by_index.at(p);
+    z.push_back(r.point.z());
+    fin.push_back(r.fin_mm);
+    view.push_back(r.view_deg);
+  }
+  auto median = [](std::vector<double> v) {
+    if (v.empty()) return 0.0;
+    std::sort(v.begin(), v.end());
+    return v[v.size() / 2];
+  };
+  std::printf("  outliers (calibrated): %zu, median z %.1f mm, fin %.2f mm, view %.1f deg\n",
+              z.size(), median(z), median(fin), median(view));
+}
+
+void WriteCsv(const std::string& path, const std::vector<Row>& rows, const PoseResult& r_cal) {
+  std::ofstream out(path);
+  out << "plan_index,x,y,z,nx,ny,nz,view_deg,fin_mm,peak,area,u,v,hull_u,hull_v,proj_u,proj_v,"
+         "sim_u,sim_v,outlier\n";
+  std::map<int, bool> outlier;
+  for (int p : r_cal.outlier_probe_indices) outlier[p] = true;
+  for (const Row& r : rows) {
+    if (!r.found) continue;
+    out << r.plan_index << ',' << r.point.x() << ',' << r.point.y() << ',' << r.point.z() << ','
+        << r.normal.x() << ',' << r.normal.y() << ',' << r.normal.z() << ',' << r.view_deg << ','
+        << r.fin_mm << ',' << r.peak << ',' << r.area << ',' << r.centroid.x() << ','
+        << r.centroid.y() << ',' << r.hull.x() << ',' << r.hull.y() << ',' << r.proj.x() << ','
+        << r.proj.y() << ',' << r.sim_centroid.x() << ',' << r.sim_centroid.y() << ','
+        << (outlier.count(r.plan_index) ? 1 : 0) << '\n';
+  }
+}
+
 int Run(const Args& args) {
   try {
-    const std::string &db_path = args.db_path, &cache = args.cache, &csv = args.csv;
-    const std::int64_t run_id = args.run_id;
-    const std::uint64_t seed = args.seed;
-    const bool simulate = args.simulate;
-    const std::vector<int>& dump = args.dump;
-    const ImpressionCentroidOptions& impression = args.impression;
-    RunDatabaseOptions ro;
-    ro.read_only = true;
-    RunDatabase db(db_path, ro);
-    const RunConfig config = StoredRunConfig(db, run_id);
-    const CalibrationInputs inputs = CalibrationInputsFor(config);
-    auto rig = std::make_shared<const SimRig>(cli::SimRigOptionsFor(config.rig, seed));
-    const FisheyeCamera true_camera = SimGroundTruth::TrueCamera(*rig);
-    const Rigid3d true_pose = SimGroundTruth::TrueCamFromSensor(*rig);
-
-    // Calibrated intrinsics: the run's latest intrinsics artifact.
-    std::optional<FisheyeIntrinsics> calibrated;
-    for (const ArtifactRecord& a : db.ListArtifacts(run_id)) {
-      if (a.stage != "intrinsics" || calibrated) continue;
-      if (a.metrics_json.find("checkerboards") == std::string::npos) continue;
-      const auto full = db.GetArtifact(run_id, a.stage, a.input_hash);
-      calibrated = IntrinsicsFromJson(
-          nlohmann::json::parse(std::string(full->blob.begin(), full->blob.end())));
-    }
-    const FisheyeCamera camera(calibrated.value_or(inputs.nominal_intrinsics));
-    std::printf("bench_pose_db: %s run %lld (%s), intrinsics %s\n", db_path.c_str(),
-                static_cast<long long>(run_id), inputs.sensor.c_str(),
-                calibrated ? "calibrated (artifact)" : "nominal");
-
-    const Rigid3d sensor_from_machine = inputs.machine_from_sensor.Inverse();
-    std::vector<Row> rows;
-    std::vector<std::int64_t> frame_ids, ref_ids;
-    for (const CapturedProbe& cp : db.ListCapturedProbes(run_id)) {
-      Row r;
-      r.plan_index = cp.probe.plan_index;
-      r.point = cp.probe.plan.point_sensor;
-      r.normal = cp.probe.plan.normal_sensor;
-      const Eigen::Vector3d mpos = cp.probe.machine_position.value_or(cp.probe.plan.press_machine);
-      r.ball = sensor_from_machine * (mpos + inputs.tool_offset);
-      r.frame_time = cp.frame_time;
-      const auto ref = db.NearestReferenceFrame(run_id, cp.frame_time);
-      r.ref_time = ref->timestamp;
-      rows.push_back(r);
-      frame_ids.push_back(cp.frame_id);
-      ref_ids.push_back(ref->id);
-    }
-    const std::size_t n = rows.size();
-    std::printf("  %zu captured probes\n", n);
-
-    if (cache.empty() || !LoadCache(cache, &rows, simulate)) {
-      const auto t0 = Clock::now();
-      const int threads = 2;
-      auto work = [&](int t) {
-        RunDatabase conn(db_path, ro);
-        std::map<std::int64_t, cv::Mat> refs;
-        std::unique_ptr<TactileCamera> sim;
-        cv::Mat sim_ref;
-        if (simulate) {
-          TactileCameraOptions to;
-          to.threads = 1;
-          sim = std::make_unique<TactileCamera>(rig, to);
-          sim_ref = sim->RenderReference(900000 + static_cast<std::uint64_t>(t));
-        }
-        for (std::size_t k = static_cast<std::size_t>(t); k < n; k += threads) {
-          Row& r = rows[k];
-          const cv::Mat press = conn.LoadFrame(frame_ids[k]);
-          auto it = refs.find(ref_ids[k]);
-          if (it == refs.end()) it = refs.emplace(ref_ids[k], conn.LoadFrame(ref_ids[k])).first;
-          if (const auto region = FindImpressionRegion(press, it->second, impression)) {
-            r.found = true;
-            r.centroid = region->centroid;
-            r.peak = region->peak_dn;
-            r.area = region->area_px;
-          }
-          if (sim) {
-            const cv::Mat p = sim->RenderAtBall(r.ball, 100 + k);
-            if (const auto region = FindImpressionRegion(p, sim_ref, impression)) {
-              r.sim_found = true;
-              r.sim_centroid = region->centroid;
-            }
-          }
-        }
-      };
-      std::vector<std::thread> pool;
-      for (int t = 1; t < threads; ++t) pool.emplace_back(work, t);
-      work(0);
-      for (auto& th : pool) th.join();
-      std::printf("  impressions in %.1f s\n", Seconds(t0));
-      if (!cache.empty()) SaveCache(cache, rows);
-    }
-
-    // Truth per probe.
-    const Bvh gel(inputs.gel_mesh), fins(inputs.fin_mesh);
-    const SurfaceMap true_map = SurfaceMap::Build(true_camera, true_pose, gel, &fins);
-    for (Row& r : rows) {
-      r.proj = true_camera.ProjectUnchecked(true_pose * r.point);
-      const ProbeRender pr =
-          RenderProbe(true_map, true_camera, true_pose * r.ball, inputs.ball_radius);
-      r.hull = HullCentroid(pr, &r.hull_ok);
-      const Eigen::Vector3d c = true_pose * r.point;
-      const Eigen::Vector3d n_cam = true_pose.RotateDirection(r.normal);
-      r.view_deg = std::acos(std::abs(n_cam.dot(c.normalized()))) * kRadToDeg;
-      r.fin_mm = std::min(std::abs(r.point.x()), std::abs(r.point.y()));
-      r.azimuth_deg = std::atan2(r.point.y(), r.point.x()) * kRadToDeg;
-    }
-
-    // Observations as the pipeline builds them.
-    std::vector<PoseObservation> obs, sim_obs, truth_obs;
-    std::vector<const Row*> obs_rows;
-    for (const Row& r : rows) {
-      if (!r.found) continue;
-      PoseObservation o;
-      o.probe_index = r.plan_index;
-      o.contact_point_sensor = r.point;
-      o.contact_normal_sensor = r.normal;
-      o.ball_center_sensor = r.ball;
-      o.centroid_px = r.centroid;
-      obs.push_back(o);
-      obs_rows.push_back(&r);
-      if (r.hull_ok) {
-        o.centroid_px = r.hull;
-        truth_obs.push_back(o);
-      }
-      if (r.sim_found) {
-        o.centroid_px = r.sim_centroid;
-        sim_obs.push_back(o);
-      }
-    }
-
-    // Residual of the observed centroid against the true rigid hull centroid, in bins.
-    auto bins = [&](const char* what, auto key, std::vector<double> edges, auto centroid_of) {
-      std::printf("  observed - true hull centroid, by %s:\n", what);
-      for (std::size_t b = 0; b + 1 < edges.size(); ++b) {
-        std::vector<double> norms;
-        Eigen::Vector2d mean = Eigen::Vector2d::Zero();
-        Eigen::Vector2d radial_mean = Eigen::Vector2d::Zero();
-        for (const Row& r : rows) {
-          if (!r.found || !r.hull_ok) continue;
-          const double k = key(r);
-          if (k < edges[b] || k >= edges[b + 1]) continue;
-          const Eigen::Vector2d e = centroid_of(r) - r.hull;
-          norms.push_back(e.norm());
-          mean += e;
-          // Component along the image radius (from the principal point) and across it.
-          const Eigen::Vector2d rad =
-              (r.hull - Eigen::Vector2d(true_camera.intrinsics().cx, true_camera.intrinsics().cy))
-                  .normalized();
-          radial_mean += Eigen::Vector2d(e.dot(rad), rad.x() * e.y() - rad.y() * e.x());
-        }
-        if (norms.empty()) continue;
-        std::sort(norms.begin(), norms.end());
-        const double m = static_cast<double>(norms.size());
-        std::printf(
-            "    [%7.1f, %7.1f): %4zu, median |e| %.2f px, p90 %.2f, mean (%.2f, %.2f), "
-            "radial %.2f, tangential %.2f\n",
-            edges[b], edges[b + 1], norms.size(), norms[norms.size() / 2],
-            norms[norms.size() * 9 / 10], mean.x() / m, mean.y() / m, radial_mean.x() / m,
-            radial_mean.y() / m);
-      }
-    };
-    auto stored = [](const Row& r) { return r.centroid; };
-    bins(
-        "height z (mm)", [](const Row& r) { return r.point.z(); },
-        {0, 3, 6, 10, 15, 20, 25, 28, 31}, stored);
-    bins(
-        "view angle (deg)", [](const Row& r) { return r.view_deg; },
-        {0, 20, 40, 50, 60, 70, 80, 90}, stored);
-    bins(
-        "distance to a fin plane (mm)", [](const Row& r) { return r.fin_mm; },
-        {0, 0.5, 1, 1.5, 2, 3, 5, 100}, stored);
-    bins(
-        "peak (DN)", [](const Row& r) { return r.peak; }, {0, 10, 20, 40, 80, 1000}, stored);
-    bins(
-        "frame time - reference time (s)",
-        [](const Row& r) { return std::abs(r.frame_time - r.ref_time); }, {0, 1, 2, 5, 10, 20, 1e9},
-        stored);
-    if (simulate) {
-      auto simc = [](const Row& r) { return r.sim_found ? r.sim_centroid : r.hull; };
-      std::printf("  --- simulator straight (same balls) ---\n");
-      bins(
-          "height z (mm)", [](const Row& r) { return r.point.z(); },
-          {0, 3, 6, 10, 15, 20, 25, 28, 31}, simc);
-      std::vector<double> d;
-      for (const Row& r : rows) {
-        if (r.found && r.sim_found) d.push_back((r.centroid - r.sim_centroid).norm());
-      }
-      std::sort(d.begin(), d.end());
-      if (!d.empty()) {
-        std::printf("  |stored - simulated| centroid: median %.3f px, p90 %.3f, max %.3f\n",
-                    d[d.size() / 2], d[d.size() * 9 / 10], d.back());
-      }
-    }
-
-    // --dump PLAN_INDEX: the difference magnitude (x4 scale, 4x zoom) around the impression with
-    // the observed region (green), its hull centroid (green dot) and the true rigid contact
-    // (red) and its hull centroid (red dot), as PNG in the working directory.
-    for (int d : dump) {
-      std::size_t k = 0;
-      while (k < n && rows[k].plan_index != d) ++k;
-      if (k == n) continue;
-      const Row& r = rows[k];
-      const cv::Mat press = db.LoadFrame(frame_ids[k]), ref = db.LoadFrame(ref_ids[k]);
-      const cv::Mat mag = DifferenceMagnitude(press, ref, cv::Mat(), 1.5, "dump");
-      const ProbeRender pr =
-          RenderProbe(true_map, true_camera, true_pose * r.ball, inputs.ball_radius);
-      double peak = 0.0;
-      cv::minMaxLoc(mag, nullptr, &peak);
-      const int half = 40, zoom = 4;
-      const cv::Rect box = cv::Rect(static_cast<int>(r.hull.x()) - half,
-                                    static_cast<int>(r.hull.y()) - half, 2 * half, 2 * half) &
-                           cv::Rect(0, 0, mag.cols, mag.rows);
-      cv::Mat grey;
-      mag(box).convertTo(grey, CV_8U, 255.0 / peak);
-      cv::Mat big;
-      cv::resize(grey, big, cv::Size(), zoom, zoom, cv::INTER_NEAREST);
-      cv::cvtColor(big, big, cv::COLOR_GRAY2BGR);
-      cv::Mat crop_press;
-      cv::resize(press(box), crop_press, cv::Size(), zoom, zoom, cv::INTER_NEAREST);
-      const float thr = static_cast<float>(std::max(0.2 * peak, 3.0));
-      cv::Mat above(box.size(), CV_8U, cv::Scalar(0)), contact(box.size(), CV_8U, cv::Scalar(0));
-      for (int v = box.y; v < box.y + box.height; ++v) {
-        for (int u = box.x; u < box.x + box.width; ++u) {
-          above.at<std::uint8_t>(v - box.y, u - box.x) = mag.at<float>(v, u) > thr ? 255 : 0;
-          const int x = u - pr.roi.x, y = v - pr.roi.y;
-          if (x >= 0 && y >= 0 && x < pr.roi.width && y < pr.roi.height &&
-              pr.contact.at<std::uint8_t>(y, x)) {
-            contact.at<std::uint8_t>(v - box.y, u - box.x) = 255;
-          }
-        }
-      }
-      for (const auto& [m, col] :
-           {std::pair{above, cv::Scalar(0, 255, 0)}, std::pair{contact, cv::Scalar(0, 0, 255)}}) {
-        cv::Mat up;
-        cv::resize(m, up, cv::Size(), zoom, zoom, cv::INTER_NEAREST);
-        std::vector<std::vector<cv::Point>> contours;
-        cv::findContours(up, contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
-        cv::drawContours(big, contours, -1, col, 1);
-      }
-      auto dot = [&](const Eigen::Vector2d& p, cv::Scalar col) {
-        cv::circle(big,
-                   cv::Point(static_cast<int>((p.x() - box.x + 0.5) * zoom),
-                             static_cast<int>((p.y() - box.y + 0.5) * zoom)),
-                   3, col, -1);
-      };
-      dot(r.centroid, cv::Scalar(0, 255, 0));
-      dot(r.hull, cv::Scalar(0, 0, 255));
-      cv::Mat both;
-      cv::hconcat(big, crop_press, both);
-      const std::string name = "pose_dump_" + std::to_string(d) + ".png";
-      cv::imwrite(name, both);
-      std::printf("  dump %d: z %.2f view %.1f peak %.1f -> %s\n", d, r.point.z(), r.view_deg, peak,
-                  name.c_str());
-    }
-
-    PoseOptions options;
-    options.ball_radius_mm = inputs.ball_radius;
-    const PoseScene scene{&gel, &fins};
-    std::printf("  true pose vs nominal: %.4f mm %.4f deg\n",
-                TranslationDifferenceMm(true_pose, inputs.nominal_cam_from_sensor),
-                RotationDifferenceRad(true_pose, inputs.nominal_cam_from_sensor) * kRadToDeg);
-    const PoseResult r_cal =
-        EstimateCamFromSensor(camera, obs, inputs.nominal_cam_from_sensor, options, scene);
-    PrintPose("stored frames, calibrated intrinsics", r_cal, true_pose);
-    {
-      PoseOptions all = options;
-      all.max_view_angle_deg = 90.0;
-      const PoseResult r_all =
-          EstimateCamFromSensor(camera, obs, inputs.nominal_cam_from_sensor, all, scene);
-      PrintPose("  ... without the view bound (90 deg)", r_all, true_pose);
-    }
-    const PoseResult r_true =
-        EstimateCamFromSensor(true_camera, obs, inputs.nominal_cam_from_sensor, options, scene);
-    PrintPose("stored frames, true intrinsics", r_true, true_pose);
-    const PoseResult r_hull =
-        EstimateCamFromSensor(camera, truth_obs, inputs.nominal_cam_from_sensor, options, scene);
-    PrintPose("true hull centroids, calibrated intrinsics", r_hull, true_pose);
-    if (!sim_obs.empty()) {
-      const PoseResult r_sim =
-          EstimateCamFromSensor(camera, sim_obs, inputs.nominal_cam_from_sensor, options, scene);
-      PrintPose("simulated frames, calibrated intrinsics", r_sim, true_pose);
-    }
-
-    // Subsets chosen by geometry (diagnostics: which probes carry the error).
-    {
-      auto subset = [&](const char* name, auto keep) {
-        std::vector<PoseObservation> sub;
-        for (std::size_t i = 0; i < obs.size(); ++i) {
-          if (keep(*obs_rows[i])) sub.push_back(obs[i]);
-        }
-        const PoseResult r =
-            EstimateCamFromSensor(camera, sub, inputs.nominal_cam_from_sensor, options, scene);
-        PrintPose(name, r, true_pose);
-      };
-      subset("subset z >= 3", [](const Row& r) { return r.point.z() >= 3.0; });
-      subset("subset view < 50", [](const Row& r) { return r.view_deg < 50.0; });
-      subset("subset z >= 3, view < 50",
-             [](const Row& r) { return r.point.z() >= 3.0 && r.view_deg < 50.0; });
-      subset("subset fin >= 1.5", [](const Row& r) { return r.fin_mm >= 1.5; });
-      subset("subset area < 2000", [](const Row& r) { return r.area < 2000; });
-      for (double bound : {40.0, 45.0, 50.0, 55.0, 60.0}) {
-        const std::string name = "subset view < " + std::to_string(static_cast<int>(bound));
-        subset(name.c_str(), [bound](const Row& r) { return r.view_deg < bound; });
-      }
-      for (double power : {1.0, 2.0, 4.0}) {
-        std::vector<PoseObservation> weighted = obs;
-        for (std::size_t i = 0; i < obs.size(); ++i) {
-          weighted[i].weight = std::pow(std::cos(obs_rows[i]->view_deg / kRadToDeg), power);
-        }
-        const PoseResult rw =
-            EstimateCamFromSensor(camera, weighted, inputs.nominal_cam_from_sensor, options, scene);
-        const std::string name = "weight cos(view)^" + std::to_string(static_cast<int>(power));
-        PrintPose(name.c_str(), rw, true_pose);
-      }
-      // Observed centroids with the TRUE model error removed where it is below 1 px (truth!).
-      std::vector<PoseObservation> fixed;
-      for (std::size_t i = 0; i < obs.size(); ++i) {
-        PoseObservation o = obs[i];
-        const Row& r = *obs_rows[i];
-        if (r.hull_ok && (r.centroid - r.hull).norm() > 1.0) continue;
-        fixed.push_back(o);
-      }
-      const PoseResult rf =
-          EstimateCamFromSensor(camera, fixed, inputs.nominal_cam_from_sensor, options, scene);
-      PrintPose("only |obs - true hull| <= 1 px (truth)", rf, true_pose);
-    }
-
-    // Where the outliers are.
-    {
-      std::map<int, const Row*> by_index;
-      for (const Row& r : rows) by_index[r.plan_index] = &r;
-      std::vector<double> z, fin, view;
-      for (int p : r_cal.outlier_probe_indices) {
-        const Row& r = *by_index.at(p);
-        z.push_back(r.point.z());
-        fin.push_back(r.fin_mm);
-        view.push_back(r.view_deg);
-      }
-      auto median = [](std::vector<double> v) {
-        if (v.empty()) return 0.0;
-        std::sort(v.begin(), v.end());
-        return v[v.size() / 2];
-      };
-      std::printf("  outliers (calibrated): %zu, median z %.1f mm, fin %.2f mm, view %.1f deg\n",
-                  z.size(), median(z), median(fin), median(view));
-    }
-
-    if (!csv.empty()) {
-      std::ofstream out(csv);
-      out << "plan_index,x,y,z,nx,ny,nz,view_deg,fin_mm,peak,area,u,v,hull_u,hull_v,proj_u,proj_v,"
-             "sim_u,sim_v,outlier\n";
-      std::map<int, bool> outlier;
-      for (int p : r_cal.outlier_probe_indices) outlier[p] = true;
-      for (const Row& r : rows) {
-        if (!r.found) continue;
-        out << r.plan_index << ',' << r.point.x() << ',' << r.point.y() << ',' << r.point.z() << ','
-            << r.normal.x() << ',' << r.normal.y() << ',' << r.normal.z() << ',' << r.view_deg
-            << ',' << r.fin_mm << ',' << r.peak << ',' << r.area << ',' << r.centroid.x() << ','
-            << r.centroid.y() << ',' << r.hull.x() << ',' << r.hull.y() << ',' << r.proj.x() << ','
-            << r.proj.y() << ',' << r.sim_centroid.x() << ',' << r.sim_centroid.y() << ','
-            << (outlier.count(r.plan_index) ? 1 : 0) << '\n';
-      }
-    }
+    Bench b = LoadBench(args);
+    LoadRows(b);
+    MeasureImpressions(b);
+    const Bvh gel(b.inputs.gel_mesh), fins(b.inputs.fin_mesh);
+    const SurfaceMap true_map = SurfaceMap::Build(b.true_camera, b.true_pose, gel, &fins);
+    AddTruth(true_map, b);
+    const Observations obs = BuildObservations(b.rows);
+    PrintResiduals(b);
+    for (int d : args.dump) DumpProbe(b, true_map, d);
+    PoseSetup setup{PoseOptions(), PoseScene{&gel, &fins}};
+    setup.options.ball_radius_mm = b.inputs.ball_radius;
+    const PoseResult r_cal = PrintPoseEstimates(b, obs, setup);
+    PrintSubsets(b, obs, setup);
+    PrintOutliers(b.rows, r_cal);
+    if (!args.csv.empty()) WriteCsv(args.csv, b.rows, r_cal);
   } catch (const std::exception& e) {
     std::fprintf(stderr, "bench_pose_db: %s\n", e.what());
     return 1;

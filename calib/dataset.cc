@@ -8,7 +8,8 @@
 #include <stdexcept>
 #include <string>
 
-#include "geometry/hash.h"
+#include "base/field_error.h"
+#include "base/hash.h"
 #include "recon/features.h"
 
 namespace gs360 {
@@ -18,8 +19,7 @@ constexpr char kMagic[8] = {'G', 'S', '3', '6', '0', 'D', 'S', 'T'};
 constexpr std::uint32_t kVersion = 2;  // 2: the feature count is stored (1: always 5)
 
 [[noreturn]] void Bad(const std::string& field, double value, const std::string& rule) {
-  throw std::invalid_argument("DatasetOptions." + field + " must be " + rule + ", got " +
-                              std::to_string(value));
+  ThrowFieldError("DatasetOptions." + field, value, "must be " + rule);
 }
 
 void Put(std::vector<std::uint8_t>* out, const void* data, std::size_t size) {

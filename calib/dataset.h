@@ -48,6 +48,17 @@ struct DatasetOptions {
   // inside, zero just outside) contradict what the camera sees, and fitting them pulls every
   // prediction toward the mean. 0 keeps every pixel. [0, 2] mm.
   double edge_exclusion_mm = 0.0;
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("max_contact_samples_per_probe", self.max_contact_samples_per_probe);
+    visit("max_samples", self.max_samples);
+    visit("non_contact_fraction", self.non_contact_fraction);
+    visit("min_contact_pixels", self.min_contact_pixels);
+    visit("validation_fraction", self.validation_fraction);
+    visit("test_fraction", self.test_fraction);
+    visit("seed", self.seed);
+    visit("edge_exclusion_mm", self.edge_exclusion_mm);
+  }
   void Check() const;  // throws std::invalid_argument naming the field and value
   // The contact-sample cap per probe for a dataset of `probes` probes with contact:
   // max_contact_samples_per_probe, lowered (not below 1) so that about max_samples samples result.

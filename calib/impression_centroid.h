@@ -25,7 +25,15 @@ struct ImpressionCentroidOptions {
   double threshold_fraction = 0.2;  // region = pixels above this fraction of the peak, (0, 1)
   double min_threshold_dn = 3.0;    // ... and above this many DN (noise floor, >= 0)
   double window_px = 60.0;          // only pixels within this distance of the peak (> 0)
-  void Check() const;               // throws std::invalid_argument naming the field and value
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("blur_sigma_px", self.blur_sigma_px);
+    visit("min_peak_dn", self.min_peak_dn);
+    visit("threshold_fraction", self.threshold_fraction);
+    visit("min_threshold_dn", self.min_threshold_dn);
+    visit("window_px", self.window_px);
+  }
+  void Check() const;  // throws std::invalid_argument naming the field and value
 };
 
 struct ImpressionRegion {

@@ -10,6 +10,7 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "base/field_error.h"
 #include "geometry/fisheye_cv.h"
 
 namespace gs360 {
@@ -17,9 +18,7 @@ namespace {
 
 template <typename T>
 [[noreturn]] void ThrowField(const char* field, T value, const char* what) {
-  std::ostringstream s;
-  s << "IntrinsicsOptions." << field << " " << what << ", got " << value;
-  throw std::invalid_argument(s.str());
+  ThrowFieldError(std::string("IntrinsicsOptions.") + field, static_cast<double>(value), what);
 }
 
 std::string Fixed(double v, int digits = 3) {
@@ -56,27 +55,32 @@ void IntrinsicsOptions::Check() const {
   if (!(epsilon > 0.0)) ThrowField("epsilon", epsilon, "must be > 0");
 }
 
-IntrinsicsResult CalibrateIntrinsics(std::span<const cv::Mat> images,
-                                     const FisheyeIntrinsics& nominal,
-                                     const IntrinsicsOptions& options) {
-  options.Check();
-  nominal.Check();
-  const cv::Size pattern(options.board_cols, options.board_rows);
-  const cv::Size image_size(nominal.width, nominal.height);
+namespace {
 
+using Corners = std::vector<cv::Point2d>;
+
+// The board's inner corners (mm, board frame), row by row.
+std::vector<cv::Point3d> BoardCorners(const IntrinsicsOptions& options) {
   std::vector<cv::Point3d> board;
   for (int r = 0; r < options.board_rows; ++r) {
     for (int c = 0; c < options.board_cols; ++c) {
       board.emplace_back(c * options.square_mm, r * options.square_mm, 0.0);
     }
   }
+  return board;
+}
 
-  IntrinsicsResult result;
-  result.images.resize(images.size());
-  std::vector<std::vector<cv::Point2d>> detected(images.size());
+// Finds the board's corners in every image (*detected, per image; result->images' reports).
+// Returns the images where the whole board was found.
+std::vector<int> DetectBoards(std::span<const cv::Mat> images, const FisheyeIntrinsics& nominal,
+                              const IntrinsicsOptions& options, std::size_t corner_count,
+                              IntrinsicsResult* result, std::vector<Corners>* detected) {
+  const cv::Size pattern(options.board_cols, options.board_rows);
+  const cv::Size image_size(nominal.width, nominal.height);
+  result->images.resize(images.size());
   std::vector<int> candidates;
   for (std::size_t i = 0; i < images.size(); ++i) {
-    IntrinsicsImageReport& report = result.images[i];
+    IntrinsicsImageReport& report = result->images[i];
     report.index = static_cast<int>(i);
     const cv::Mat& image = images[i];
     if (image.size() != image_size || (image.type() != CV_8UC1 && image.type() != CV_8UC3)) {
@@ -95,7 +99,7 @@ IntrinsicsResult CalibrateIntrinsics(std::span<const cv::Mat> images,
     std::vector<cv::Point2f> corners;
     const bool found = cv::findChessboardCorners(
         grey, pattern, corners, cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE);
-    if (!found || corners.size() != board.size()) {
+    if (!found || corners.size() != corner_count) {
       report.reason = "no checkerboard detected";
       continue;
     }
@@ -103,23 +107,17 @@ IntrinsicsResult CalibrateIntrinsics(std::span<const cv::Mat> images,
                      cv::Size(-1, -1),
                      cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-4));
     report.corners = static_cast<int>(corners.size());
-    for (const cv::Point2f& p : corners) detected[i].emplace_back(p.x, p.y);
+    for (const cv::Point2f& p : corners) (*detected)[i].emplace_back(p.x, p.y);
     candidates.push_back(static_cast<int>(i));
   }
-  auto reject_rest = [&]() {
-    for (std::size_t i = 0; i < images.size(); ++i) {
-      if (!result.images[i].used) result.rejected.push_back(static_cast<int>(i));
-    }
-  };
-  if (static_cast<int>(candidates.size()) < options.min_images) {
-    throw std::runtime_error("CalibrateIntrinsics: a " + std::to_string(options.board_cols) + "x" +
-                             std::to_string(options.board_rows) + " checkerboard was detected in " +
-                             std::to_string(candidates.size()) + " of " +
-                             std::to_string(images.size()) + " images, need at least " +
-                             std::to_string(options.min_images));
-  }
+  return candidates;
+}
 
-  // Coverage: the distortion is only determined where corners were seen.
+// Coverage: the distortion is only determined where corners were seen. Sets
+// result->radial_coverage; throws std::runtime_error below min_radial_coverage.
+void CheckCoverage(const FisheyeIntrinsics& nominal, const std::vector<int>& candidates,
+                   const std::vector<Corners>& detected, const IntrinsicsOptions& options,
+                   IntrinsicsResult* result) {
   const FisheyeCamera nominal_camera(nominal);
   const double circle_radius = std::min(nominal.fx, nominal.fy) *
                                nominal_camera.ThetaToThetaD(nominal_camera.MaxValidTheta());
@@ -129,94 +127,138 @@ IntrinsicsResult CalibrateIntrinsics(std::span<const cv::Mat> images,
       max_radius = std::max(max_radius, std::hypot(p.x - nominal.cx, p.y - nominal.cy));
     }
   }
-  result.radial_coverage = max_radius / circle_radius;
-  if (result.radial_coverage < options.min_radial_coverage) {
+  result->radial_coverage = max_radius / circle_radius;
+  if (result->radial_coverage < options.min_radial_coverage) {
     throw std::runtime_error("CalibrateIntrinsics: the detected boards reach " +
                              Fixed(max_radius, 1) + " px from the principal point, " +
-                             Fixed(100.0 * result.radial_coverage, 1) +
+                             Fixed(100.0 * result->radial_coverage, 1) +
                              "% of the image circle's radius (" + Fixed(circle_radius, 1) +
                              " px); need " + Fixed(100.0 * options.min_radial_coverage, 1) +
                              "%: take images with the board near the rim of the field");
   }
+}
 
+struct FisheyeFit {
+  cv::Matx33d K;
+  cv::Vec4d D;
+  std::vector<cv::Vec3d> rvecs, tvecs;  // per used image
+  std::vector<int> used;                // input indices
+};
+
+// cv::fisheye::calibrate over the candidates from the nominal model; an image OpenCV finds
+// ill-conditioned (CALIB_CHECK_COND) is left out, its reason recorded, and the rest calibrated
+// again.
+FisheyeFit FitFisheye(const std::vector<int>& candidates, const std::vector<Corners>& detected,
+                      const std::vector<cv::Point3d>& board, const FisheyeIntrinsics& nominal,
+                      const IntrinsicsOptions& options, IntrinsicsResult* result) {
+  const cv::Size image_size(nominal.width, nominal.height);
   const int flags = cv::fisheye::CALIB_RECOMPUTE_EXTRINSIC | cv::fisheye::CALIB_CHECK_COND |
                     cv::fisheye::CALIB_FIX_SKEW | cv::fisheye::CALIB_USE_INTRINSIC_GUESS;
   const cv::TermCriteria criteria(cv::TermCriteria::COUNT + cv::TermCriteria::EPS,
                                   options.max_iterations, options.epsilon);
-  cv::Matx33d K;
-  cv::Vec4d D;
-  std::vector<cv::Vec3d> rvecs, tvecs;
-  std::vector<int> used = candidates;
+  FisheyeFit fit;
+  fit.used = candidates;
   for (;;) {
-    if (static_cast<int>(used.size()) < options.min_images) {
+    if (static_cast<int>(fit.used.size()) < options.min_images) {
       throw std::runtime_error(
           "CalibrateIntrinsics: after rejecting ill-conditioned images (OpenCV CALIB_CHECK_COND) "
           "only " +
-          std::to_string(used.size()) + " images remain, need at least " +
+          std::to_string(fit.used.size()) + " images remain, need at least " +
           std::to_string(options.min_images) + ": vary the board's distance and tilt more");
     }
-    std::vector<std::vector<cv::Point3d>> object_points(used.size(), board);
-    std::vector<std::vector<cv::Point2d>> image_points;
-    for (int i : used) image_points.push_back(detected[i]);
-    K = ToCvK(nominal);
-    K(0, 1) = 0.0;
-    D = ToCvD(nominal);
-    rvecs.clear();
-    tvecs.clear();
+    std::vector<std::vector<cv::Point3d>> object_points(fit.used.size(), board);
+    std::vector<Corners> image_points;
+    for (int i : fit.used) image_points.push_back(detected[i]);
+    fit.K = ToCvK(nominal);
+    fit.K(0, 1) = 0.0;
+    fit.D = ToCvD(nominal);
+    fit.rvecs.clear();
+    fit.tvecs.clear();
     try {
-      cv::fisheye::calibrate(object_points, image_points, image_size, K, D, rvecs, tvecs, flags,
-                             criteria);
-      break;
+      cv::fisheye::calibrate(object_points, image_points, image_size, fit.K, fit.D, fit.rvecs,
+                             fit.tvecs, flags, criteria);
+      return fit;
     } catch (const cv::Exception& e) {
       const int bad = IllConditionedIndex(e.what());
-      if (bad < 0 || bad >= static_cast<int>(used.size())) {
+      if (bad < 0 || bad >= static_cast<int>(fit.used.size())) {
         throw std::runtime_error(
             std::string("CalibrateIntrinsics: cv::fisheye::calibrate failed: ") + e.what());
       }
-      result.images[used[bad]].reason = "ill-conditioned (OpenCV CALIB_CHECK_COND)";
-      used.erase(used.begin() + bad);
+      result->images[fit.used[bad]].reason = "ill-conditioned (OpenCV CALIB_CHECK_COND)";
+      fit.used.erase(fit.used.begin() + bad);
     }
   }
+}
 
-  FisheyeIntrinsics intrinsics;
-  try {
-    intrinsics = FromCv(K, D, nominal.width, nominal.height, nominal.max_theta);
-  } catch (const std::invalid_argument& e) {
-    throw std::runtime_error(std::string("CalibrateIntrinsics: unusable result: ") + e.what());
-  }
-
-  // Per-image and overall reprojection errors under the result.
+// Per-image and overall reprojection errors under the fit (`skew`: the result's); marks the used
+// images and records their board poses.
+void AddReprojectionErrors(const FisheyeFit& fit, const std::vector<cv::Point3d>& board,
+                           const std::vector<Corners>& detected, double skew,
+                           IntrinsicsResult* result) {
   double sum_sq = 0.0;
   std::size_t count = 0;
-  for (std::size_t j = 0; j < used.size(); ++j) {
-    std::vector<cv::Point2d> projected;
-    cv::fisheye::projectPoints(board, projected, rvecs[j], tvecs[j], K, D, intrinsics.skew);
+  for (std::size_t j = 0; j < fit.used.size(); ++j) {
+    Corners projected;
+    cv::fisheye::projectPoints(board, projected, fit.rvecs[j], fit.tvecs[j], fit.K, fit.D, skew);
     double image_sq = 0.0;
-    const auto& seen = detected[used[j]];
+    const auto& seen = detected[fit.used[j]];
     for (std::size_t k = 0; k < board.size(); ++k) {
       const cv::Point2d e = projected[k] - seen[k];
       image_sq += e.dot(e);
     }
-    IntrinsicsImageReport& report = result.images[used[j]];
+    IntrinsicsImageReport& report = result->images[fit.used[j]];
     report.used = true;
     report.rms_px = std::sqrt(image_sq / static_cast<double>(board.size()));
     sum_sq += image_sq;
     count += board.size();
     cv::Matx33d R;
-    cv::Rodrigues(rvecs[j], R);
+    cv::Rodrigues(fit.rvecs[j], R);
     Eigen::Matrix<double, 3, 4> m;
     for (int r = 0; r < 3; ++r) {
       for (int c = 0; c < 3; ++c) m(r, c) = R(r, c);
-      m(r, 3) = tvecs[j][r];
+      m(r, 3) = fit.tvecs[j][r];
     }
-    result.cam_from_board.push_back(Rigid3d::FromMatrix(m));
+    result->cam_from_board.push_back(Rigid3d::FromMatrix(m));
   }
-  result.rms_px = std::sqrt(sum_sq / static_cast<double>(count));
-  result.used = used;
-  reject_rest();
+  result->rms_px = std::sqrt(sum_sq / static_cast<double>(count));
+}
+
+}  // namespace
+
+IntrinsicsResult CalibrateIntrinsics(std::span<const cv::Mat> images,
+                                     const FisheyeIntrinsics& nominal,
+                                     const IntrinsicsOptions& options) {
+  options.Check();
+  nominal.Check();
+  const std::vector<cv::Point3d> board = BoardCorners(options);
+  IntrinsicsResult result;
+  std::vector<Corners> detected(images.size());
+  const std::vector<int> candidates =
+      DetectBoards(images, nominal, options, board.size(), &result, &detected);
+  if (static_cast<int>(candidates.size()) < options.min_images) {
+    throw std::runtime_error("CalibrateIntrinsics: a " + std::to_string(options.board_cols) + "x" +
+                             std::to_string(options.board_rows) + " checkerboard was detected in " +
+                             std::to_string(candidates.size()) + " of " +
+                             std::to_string(images.size()) + " images, need at least " +
+                             std::to_string(options.min_images));
+  }
+  CheckCoverage(nominal, candidates, detected, options, &result);
+  const FisheyeFit fit = FitFisheye(candidates, detected, board, nominal, options, &result);
+
+  FisheyeIntrinsics intrinsics;
+  try {
+    intrinsics = FromCv(fit.K, fit.D, nominal.width, nominal.height, nominal.max_theta);
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error(std::string("CalibrateIntrinsics: unusable result: ") + e.what());
+  }
+  AddReprojectionErrors(fit, board, detected, intrinsics.skew, &result);
+  result.used = fit.used;
+  for (std::size_t i = 0; i < images.size(); ++i) {
+    if (!result.images[i].used) result.rejected.push_back(static_cast<int>(i));
+  }
   if (!(result.rms_px <= options.max_rms_px)) {
     throw std::runtime_error("CalibrateIntrinsics: RMS reprojection error " + Fixed(result.rms_px) +
-                             " px over " + std::to_string(used.size()) +
+                             " px over " + std::to_string(fit.used.size()) +
                              " images exceeds max_rms_px = " + Fixed(options.max_rms_px));
   }
   result.intrinsics = intrinsics;

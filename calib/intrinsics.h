@@ -43,6 +43,18 @@ struct IntrinsicsOptions {
   int max_iterations = 200;  // cv::fisheye::calibrate termination (>= 1)
   double epsilon = 1e-12;    // ... and its parameter-change tolerance (> 0)
   // Throws std::invalid_argument naming the field and its value.
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("board_cols", self.board_cols);
+    visit("board_rows", self.board_rows);
+    visit("square_mm", self.square_mm);
+    visit("min_images", self.min_images);
+    visit("max_rms_px", self.max_rms_px);
+    visit("min_radial_coverage", self.min_radial_coverage);
+    visit("subpix_window", self.subpix_window);
+    visit("max_iterations", self.max_iterations);
+    visit("epsilon", self.epsilon);
+  }
   void Check() const;
 };
 

@@ -12,7 +12,7 @@
 #include <stdexcept>
 #include <string>
 
-#include "geometry/hash.h"
+#include "base/hash.h"
 
 namespace gs360 {
 namespace {

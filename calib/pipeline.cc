@@ -13,10 +13,11 @@
 
 #include <opencv2/imgcodecs.hpp>
 
+#include "base/fields.h"
+#include "base/hash.h"
 #include "calib/onnx_export.h"
 #include "calib/report.h"
 #include "geometry/bvh.h"
-#include "geometry/hash.h"
 
 namespace gs360 {
 namespace {
@@ -86,68 +87,51 @@ void HashPose(Hasher& h, const Rigid3d& p) {
   h.AddDouble(p.translation.x()).AddDouble(p.translation.y()).AddDouble(p.translation.z());
 }
 
-// Options enter the hashes through their JSON text (stable key order in nlohmann::json).
-Json TrainOptionsJson(const TrainOptions& o) {
-  return Json{{"hidden", o.hidden},
-              {"activation", std::string(ToString(o.activation))},
-              {"fourier", {o.fourier.inputs, o.fourier.frequencies, o.fourier.base}},
-              {"batch_size", o.batch_size},
-              {"learning_rate", o.learning_rate},
-              {"beta1", o.beta1},
-              {"beta2", o.beta2},
-              {"epsilon", o.epsilon},
-              {"schedule", std::string(ToString(o.schedule))},
-              {"min_learning_rate", o.min_learning_rate},
-              {"plateau_factor", o.plateau_factor},
-              {"plateau_epochs", o.plateau_epochs},
-              {"plateau_threshold", o.plateau_threshold},
-              {"max_epochs", o.max_epochs},
-              {"patience", o.patience},
-              {"seed", o.seed},
-              {"threads", o.threads}};
-}
-
-// The stages' bookkeeping: cache lookup, forced re-runs, reports.
+// The stages' bookkeeping: cache lookup, forced re-runs, the selection, reports.
 class StageRunner {
  public:
-  StageRunner(RunDatabase& db, std::int64_t run_id, const std::string& from_stage,
+  StageRunner(RunDatabase& db, std::int64_t run_id, const CalibrationOptions& options,
               const CalibrationLog& log, std::vector<StageReport>* reports)
       : db_(db), run_id_(run_id), log_(log), reports_(reports) {
+    const int n = static_cast<int>(CalibrationStages().size());
+    from_index_ = options.from_stage.empty() ? n : IndexOf(options.from_stage);
+    if (!options.only_stage.empty()) only_index_ = IndexOf(options.only_stage);
+  }
+
+  static int IndexOf(const std::string& stage) {
     const auto& stages = CalibrationStages();
-    from_index_ = static_cast<int>(stages.size());
-    if (!from_stage.empty()) {
-      auto it = std::find(stages.begin(), stages.end(), from_stage);
-      if (it == stages.end()) {
-        std::string names;
-        for (const auto& s : stages) names += (names.empty() ? "" : ", ") + s;
-        throw std::invalid_argument("--from: unknown stage \"" + from_stage +
-                                    "\" (stages: " + names + ")");
-      }
-      from_index_ = static_cast<int>(it - stages.begin());
-    }
+    const auto it = std::find(stages.begin(), stages.end(), stage);
+    if (it == stages.end()) throw std::logic_error("no calibration stage " + stage);
+    return static_cast<int>(it - stages.begin());
   }
 
   // Returns the stage's blob: the cached one, or compute()'s (stored).
-  template <typename Compute>
   // `force`: run even if cached (e.g. the stage's files were deleted).
+  template <typename Compute>
   std::vector<std::uint8_t> Run(const std::string& stage, const std::string& hash, Compute compute,
                                 Json* metrics_out = nullptr, bool force = false) {
     const auto t0 = Clock::now();
-    const auto& stages = CalibrationStages();
-    const int index =
-        static_cast<int>(std::find(stages.begin(), stages.end(), stage) - stages.begin());
+    const int index = IndexOf(stage);
     StageReport report;
     report.stage = stage;
     report.input_hash = hash;
     std::vector<std::uint8_t> blob;
     std::optional<ArtifactRecord> cached;
-    if (index < from_index_ && !force) cached = db_.GetArtifact(run_id_, stage, hash);
+    const bool forced = force || index >= from_index_ || index == only_index_;
+    if (!forced) cached = db_.GetArtifact(run_id_, stage, hash);
     if (cached) {
       blob = std::move(cached->blob);
       report.cached = true;
       report.metrics = Json::parse(cached->metrics_json);
       Log(stage, "cached (" + hash + ")");
     } else {
+      if (only_index_ >= 0 && index < only_index_) {
+        throw std::runtime_error("calibrate: only " + CalibrationStages()[only_index_] +
+                                 " was asked for, but its input " + stage +
+                                 " has no stored result for these options; run `gs360 "
+                                 "calibrate --to " +
+                                 stage + "` first");
+      }
       Log(stage, "running");
       Json metrics;
       blob = compute(&metrics);
@@ -171,6 +155,7 @@ class StageRunner {
   const CalibrationLog& log_;
   std::vector<StageReport>* reports_;
   int from_index_ = 0;
+  int only_index_ = -1;
 };
 
 // A captured probe with everything the stages need to know about it.
@@ -298,612 +283,602 @@ std::map<int, ProbeRender> RendersFromSparse(std::span<const std::uint8_t> bytes
   return out;
 }
 
-}  // namespace
-
-const std::vector<std::string>& CalibrationStages() {
-  static const std::vector<std::string> kStages = {"intrinsics",  "impressions", "pose",
-                                                   "surface_map", "render",      "dataset",
-                                                   "train",       "validate",    "export"};
-  return kStages;
+// The probes' samples in probe order, as one dataset (split not yet assigned).
+Dataset MergeProbeSamples(const std::vector<Dataset>& parts, const std::vector<ProbeInfo>& probes,
+                          int features) {
+  Dataset all;
+  std::size_t n = 0;
+  for (const Dataset& p : parts) n += p.probe.size();
+  all.x.resize(features, static_cast<Eigen::Index>(n));
+  all.y.resize(2, static_cast<Eigen::Index>(n));
+  Eigen::Index c = 0;
+  for (std::size_t k = 0; k < parts.size(); ++k) {
+    const Dataset& p = parts[k];
+    if (p.probe.empty()) continue;
+    all.x.middleCols(c, p.x.cols()) = p.x;
+    all.y.middleCols(c, p.y.cols()) = p.y;
+    c += p.x.cols();
+    all.probe.insert(all.probe.end(), p.probe.begin(), p.probe.end());
+    all.contact.insert(all.contact.end(), p.contact.begin(), p.contact.end());
+    all.probes.push_back(probes[k].plan_index);
+  }
+  return all;
 }
 
-void CalibrationOptions::Check() const {
-  intrinsics.Check();
-  surface_map.Check();
-  impression.Check();
-  pose.Check();
-  render.Check();
-  dataset.Check();
-  train.Check();
-  validation.Check();
-  reconstruction.Check();
-  if (threads < 1 || threads > 64) {
-    throw std::invalid_argument("CalibrationOptions.threads must be in [1, 64], got " +
-                                std::to_string(threads));
-  }
-  if (!from_stage.empty()) {
-    const auto& s = CalibrationStages();
-    if (std::find(s.begin(), s.end(), from_stage) == s.end()) {
-      throw std::invalid_argument("CalibrationOptions.from_stage: unknown stage \"" + from_stage +
-                                  "\"");
+// One calibration call: the stages as member functions sharing what upstream stages produced.
+// Each stage computes its key from its StageSpec (StageKey), then runs or loads its artifact.
+class Calibration {
+ public:
+  Calibration(RunDatabase& db, std::int64_t run_id, const CalibrationInputs& inputs,
+              const CalibrationOptions& options, const ValidationTruth* truth,
+              const CalibrationLog& log)
+      : db_(db),
+        run_id_(run_id),
+        inputs_(inputs),
+        options_(options),
+        truth_(truth),
+        options_json_(FieldsToJson(options)),
+        runner_(db, run_id, options, log, &result_.stages) {}
+
+  CalibrationResult Run() {
+    using Step = void (Calibration::*)();
+    static const std::map<std::string, Step> kSteps = {
+        {"intrinsics", &Calibration::Intrinsics},
+        {"impressions", &Calibration::Impressions},
+        {"pose", &Calibration::Pose},
+        {"surface_map", &Calibration::BuildSurfaceMap},
+        {"render", &Calibration::Render},
+        {"dataset", &Calibration::BuildDataset},
+        {"train", &Calibration::TrainMlp},
+        {"validate", &Calibration::ValidateModel},
+        {"export", &Calibration::Export}};
+    const auto t_start = Clock::now();
+    LoadProbes();
+    const std::string& last = !options_.only_stage.empty() ? options_.only_stage
+                              : !options_.to_stage.empty() ? options_.to_stage
+                                                           : CalibrationStages().back();
+    for (const std::string& stage : CalibrationStages()) {
+      (this->*kSteps.at(stage))();
+      if (stage == last) break;
     }
+    result_.seconds = Since(t_start);
+    return std::move(result_);
   }
-}
 
-CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
-                                 const CalibrationInputs& inputs, const CalibrationOptions& options,
-                                 const ValidationTruth* truth, const CalibrationLog& log) {
-  options.Check();
-  const auto t_start = Clock::now();
-  CalibrationResult result;
-  StageRunner runner(db, run_id, options.from_stage, log, &result.stages);
-  const auto run = db.GetRun(run_id);
-  if (!run)
-    throw std::runtime_error("calibrate: no run " + std::to_string(run_id) + " in " +
-                             db.path().string());
-  const Rigid3d sensor_from_machine = inputs.machine_from_sensor.Inverse();
-
-  // ---- the captured probes and their frames ----
-  std::vector<ProbeInfo> probes;
-  Hasher frames_hash;
-  for (const CapturedProbe& cp : db.ListCapturedProbes(run_id)) {
-    ProbeInfo p;
-    p.plan_index = cp.probe.plan_index;
-    p.frame_id = cp.frame_id;
-    p.point_sensor = cp.probe.plan.point_sensor;
-    p.normal_sensor = cp.probe.plan.normal_sensor;
-    const Eigen::Vector3d mpos = cp.probe.machine_position.value_or(cp.probe.plan.press_machine);
-    p.ball_sensor = sensor_from_machine * (mpos + inputs.tool_offset);
-    const auto ref = db.NearestReferenceFrame(run_id, cp.frame_time);
-    if (!ref)
-      throw std::runtime_error("calibrate: run " + std::to_string(run_id) +
-                               " has no reference frame");
-    p.reference_id = ref->id;
-    const auto info = db.GetFrameInfo(p.frame_id);
-    frames_hash.AddPod(p.plan_index).Add(info ? info->checksum : std::string("?"));
-    frames_hash.Add(ref->checksum);
-    frames_hash.AddDouble(p.ball_sensor.x())
-        .AddDouble(p.ball_sensor.y())
-        .AddDouble(p.ball_sensor.z());
-    probes.push_back(p);
+ private:
+  // The stage's key from its spec, recorded for the stages downstream.
+  const std::string& Key(const std::string& stage) {
+    const auto& specs = CalibrationStageSpecs();
+    const auto it = std::find_if(specs.begin(), specs.end(),
+                                 [&](const StageSpec& s) { return s.name == stage; });
+    keys_[stage] = StageKey(*it, options_json_, keys_);
+    return keys_[stage];
   }
-  if (probes.size() < 20) {
-    throw std::runtime_error("calibrate: run " + std::to_string(run_id) + " has " +
-                             std::to_string(probes.size()) +
-                             " captured probes; the calibration needs at least 20");
-  }
-  const std::string frames_key = frames_hash.Hex();
-  Hasher geometry_hash;
-  HashMesh(geometry_hash, inputs.gel_mesh);
-  HashMesh(geometry_hash, inputs.fin_mesh);
-  geometry_hash.AddDouble(inputs.ball_radius);
-  const std::string geometry_key = geometry_hash.Hex();
 
-  // ---- 1. intrinsics ----
-  std::string intrinsics_key;
-  {
-    Hasher h;
-    h.Add("intrinsics/1").Add(IntrinsicsToJson(inputs.nominal_intrinsics).dump());
-    std::vector<cv::Mat> images;
-    for (const auto& path : inputs.checkerboard_images) {
-      std::ifstream in(path, std::ios::binary);
-      if (!in)
-        throw std::runtime_error("intrinsics: cannot read checkerboard image " + path.string());
-      std::vector<std::uint8_t> bytes((std::istreambuf_iterator<char>(in)),
-                                      std::istreambuf_iterator<char>());
-      h.Add(bytes.data(), bytes.size());
-      cv::Mat img = cv::imdecode(bytes, cv::IMREAD_GRAYSCALE);
-      if (img.empty())
-        throw std::runtime_error("intrinsics: " + path.string() + " is not a readable image");
-      images.push_back(img);
-    }
-    const IntrinsicsOptions& io = options.intrinsics;
-    h.Add(Json{{"cols", io.board_cols},
-               {"rows", io.board_rows},
-               {"square", io.square_mm},
-               {"min_images", io.min_images},
-               {"max_rms", io.max_rms_px},
-               {"coverage", io.min_radial_coverage},
-               {"subpix", io.subpix_window},
-               {"iterations", io.max_iterations},
-               {"eps", io.epsilon}}
-              .dump());
-    intrinsics_key = h.Hex();
-    const auto blob = runner.Run("intrinsics", intrinsics_key, [&](Json* metrics) {
-      Json out;
-      if (images.empty()) {
-        out = IntrinsicsToJson(inputs.nominal_intrinsics);
-        (*metrics)["source"] = "nominal (no checkerboard images given)";
-      } else {
-        IntrinsicsResult r;
-        try {
-          r = CalibrateIntrinsics(images, inputs.nominal_intrinsics, options.intrinsics);
-        } catch (const std::exception& e) {
-          throw std::runtime_error(std::string("intrinsics: ") + e.what());
-        }
-        out = IntrinsicsToJson(r.intrinsics);
-        (*metrics)["source"] = "checkerboards";
-        (*metrics)["rms_px"] = r.rms_px;
-        (*metrics)["images_used"] = r.used.size();
-        (*metrics)["images_rejected"] = r.rejected.size();
-        (*metrics)["radial_coverage"] = r.radial_coverage;
-      }
-      (*metrics)["intrinsics"] = out;
-      const std::string text = out.dump();
-      return std::vector<std::uint8_t>(text.begin(), text.end());
-    });
-    result.intrinsics = IntrinsicsFromJson(Json::parse(FromBytes(blob)));
-  }
-  const FisheyeCamera camera(result.intrinsics);
+  const FisheyeCamera& Camera() const { return *camera_; }
 
-  // ---- 2. impressions ----
+  const Bvh& GelBvh() {
+    if (!gel_bvh_) gel_bvh_ = std::make_unique<Bvh>(inputs_.gel_mesh);
+    return *gel_bvh_;
+  }
+  const Bvh* FinBvh() {
+    if (!fin_bvh_ && !inputs_.fin_mesh.Empty()) fin_bvh_ = std::make_unique<Bvh>(inputs_.fin_mesh);
+    return fin_bvh_.get();
+  }
+
+  void LoadProbes();
+  void Intrinsics();
+  void Impressions();
+  void Pose();
+  void BuildSurfaceMap();
+  void Render();
+  void BuildDataset();
+  void TrainMlp();
+  void ValidateModel();
+  Json ValidateProbes();
+  void Export();
+  Json ExportModel(const std::string& name, const std::string& version);
+
   struct Found {
     bool ok = false;
     Eigen::Vector2d centroid = Eigen::Vector2d::Zero();
     double peak = 0.0;
     int pixels = 0;
   };
-  std::vector<Found> impressions(probes.size());
-  std::string impressions_key;
-  {
-    Hasher h;
-    h.Add("impressions/1").Add(frames_key);
-    const ImpressionCentroidOptions& io = options.impression;
-    h.AddDouble(io.blur_sigma_px).AddDouble(io.min_peak_dn).AddDouble(io.threshold_fraction);
-    h.AddDouble(io.min_threshold_dn).AddDouble(io.window_px);
-    impressions_key = h.Hex();
-    const auto blob = runner.Run("impressions", impressions_key, [&](Json* metrics) {
-      std::vector<Found> found(probes.size());
-      std::vector<FrameLoader> loaders(static_cast<std::size_t>(options.threads));
-      ParallelOverProbes(db.path(), probes.size(), options.threads,
-                         [&](std::size_t k, int t, RunDatabase& conn) {
-                           FrameLoader& fl = loaders[static_cast<std::size_t>(t)];
-                           const cv::Mat press = fl.Press(conn, probes[k]);
-                           const cv::Mat ref = fl.Reference(conn, probes[k]);
-                           const auto imp = FindImpressionRegion(press, ref, options.impression);
-                           if (imp) found[k] = {true, imp->centroid, imp->peak_dn, imp->pixels};
-                         });
-      std::vector<std::uint8_t> out;
-      int ok = 0;
-      for (const Found& f : found) {
-        PutPod(&out, static_cast<std::uint8_t>(f.ok));
-        PutPod(&out, f.centroid.x()), PutPod(&out, f.centroid.y());
-        PutPod(&out, f.peak), PutPod(&out, static_cast<std::int32_t>(f.pixels));
-        ok += f.ok ? 1 : 0;
-      }
-      (*metrics)["probes"] = probes.size();
-      (*metrics)["impressions_found"] = ok;
-      return out;
-    });
-    ByteReader r(blob, "impressions");
-    for (Found& f : impressions) {
-      f.ok = r.Pod<std::uint8_t>() != 0;
-      const double x = r.Pod<double>(), y = r.Pod<double>();
-      f.centroid = Eigen::Vector2d(x, y);
-      f.peak = r.Pod<double>();
-      f.pixels = r.Pod<std::int32_t>();
+
+  RunDatabase& db_;
+  std::int64_t run_id_;
+  const CalibrationInputs& inputs_;
+  const CalibrationOptions& options_;
+  const ValidationTruth* truth_;
+  const Json options_json_;
+  CalibrationResult result_;
+  StageRunner runner_;
+  std::map<std::string, std::string> keys_;  // every input's and finished stage's key
+
+  std::vector<ProbeInfo> probes_;
+  std::optional<FisheyeCamera> camera_;
+  std::unique_ptr<Bvh> gel_bvh_, fin_bvh_;
+  std::vector<Found> impressions_;
+  Json pose_metrics_;
+  std::shared_ptr<const SurfaceMap> map_;
+  std::map<int, ProbeRender> renders_;
+  Dataset dataset_;
+  Mlp mlp_;
+  std::vector<TrainEpoch> curve_;
+  cv::Mat reference_;
+  std::string html_;
+};
+
+// The captured probes, their frames, and the keys of the inputs that are not stages.
+void Calibration::LoadProbes() {
+  const auto run = db_.GetRun(run_id_);
+  if (!run) {
+    throw std::runtime_error("calibrate: no run " + std::to_string(run_id_) + " in " +
+                             db_.path().string());
+  }
+  const Rigid3d sensor_from_machine = inputs_.machine_from_sensor.Inverse();
+  Hasher frames_hash;
+  for (const CapturedProbe& cp : db_.ListCapturedProbes(run_id_)) {
+    ProbeInfo p;
+    p.plan_index = cp.probe.plan_index;
+    p.frame_id = cp.frame_id;
+    p.point_sensor = cp.probe.plan.point_sensor;
+    p.normal_sensor = cp.probe.plan.normal_sensor;
+    const Eigen::Vector3d mpos = cp.probe.machine_position.value_or(cp.probe.plan.press_machine);
+    p.ball_sensor = sensor_from_machine * (mpos + inputs_.tool_offset);
+    const auto ref = db_.NearestReferenceFrame(run_id_, cp.frame_time);
+    if (!ref) {
+      throw std::runtime_error("calibrate: run " + std::to_string(run_id_) +
+                               " has no reference frame");
     }
+    p.reference_id = ref->id;
+    const auto info = db_.GetFrameInfo(p.frame_id);
+    frames_hash.AddPod(p.plan_index).Add(info ? info->checksum : std::string("?"));
+    frames_hash.Add(ref->checksum);
+    frames_hash.AddDouble(p.ball_sensor.x())
+        .AddDouble(p.ball_sensor.y())
+        .AddDouble(p.ball_sensor.z());
+    probes_.push_back(p);
   }
+  if (probes_.size() < 20) {
+    throw std::runtime_error("calibrate: run " + std::to_string(run_id_) + " has " +
+                             std::to_string(probes_.size()) +
+                             " captured probes; the calibration needs at least 20");
+  }
+  keys_["frames"] = frames_hash.Hex();
+  Hasher geometry;
+  HashMesh(geometry, inputs_.gel_mesh);
+  HashMesh(geometry, inputs_.fin_mesh);
+  geometry.AddDouble(inputs_.ball_radius);
+  keys_["geometry"] = geometry.Hex();
+  keys_["nominal_intrinsics"] =
+      Hasher().Add(IntrinsicsToJson(inputs_.nominal_intrinsics).dump()).Hex();
+  Hasher pose;
+  HashPose(pose, inputs_.nominal_cam_from_sensor);
+  keys_["nominal_pose"] = pose.Hex();
+  keys_["truth"] =
+      Hasher().Add(truth_ != nullptr ? truth_->Describe() : std::string("no truth")).Hex();
+}
 
-  const Bvh gel_bvh(inputs.gel_mesh);
-  std::unique_ptr<Bvh> fin_bvh;
-  if (!inputs.fin_mesh.Empty()) fin_bvh = std::make_unique<Bvh>(inputs.fin_mesh);
-
-  // ---- 3. pose ----
-  std::string pose_key;
-  Json pose_metrics;
-  {
-    Hasher h;
-    h.Add("pose/1").Add(impressions_key).Add(intrinsics_key).Add(geometry_key);
-    HashPose(h, inputs.nominal_cam_from_sensor);
-    const PoseOptions& po = options.pose;
-    h.AddPod(po.ransac_probes).AddDouble(po.ransac_threshold_px).AddPod(po.ransac_iterations);
-    h.AddPod(po.max_iterations).AddDouble(po.huber_px).AddDouble(po.outlier_px);
-    h.AddPod(po.min_observations).AddPod(po.model_bias).AddPod(po.bias_rounds);
-    h.Add("view").AddDouble(po.max_view_angle_deg).AddDouble(po.min_view_fraction);
-    h.AddDouble(po.render.margin_px).AddDouble(po.render.max_slope_deg);
-    h.AddDouble(po.surface_map.max_view_angle_deg).AddDouble(po.surface_map.fin_margin_px);
-    h.AddPod(po.seed);
-    pose_key = h.Hex();
-    const auto blob = runner.Run(
-        "pose", pose_key,
-        [&](Json* metrics) {
-          std::vector<PoseObservation> obs;
-          for (std::size_t k = 0; k < probes.size(); ++k) {
-            if (!impressions[k].ok) continue;
-            PoseObservation o;
-            o.probe_index = probes[k].plan_index;
-            o.contact_point_sensor = probes[k].point_sensor;
-            o.contact_normal_sensor = probes[k].normal_sensor;
-            o.ball_center_sensor = probes[k].ball_sensor;
-            o.centroid_px = impressions[k].centroid;
-            obs.push_back(o);
-          }
-          PoseResult r;
-          try {
-            PoseOptions run_options = options.pose;
-            run_options.ball_radius_mm = inputs.ball_radius;
-            run_options.threads = options.threads;
-            r = EstimateCamFromSensor(camera, obs, inputs.nominal_cam_from_sensor, run_options,
-                                      PoseScene{&gel_bvh, fin_bvh.get()});
-          } catch (const std::exception& e) {
-            throw std::runtime_error(std::string("pose: ") + e.what());
-          }
-          Json out{{"cam_from_sensor", PoseToJson(r.cam_from_sensor)},
-                   {"paper_cam_from_sensor", PoseToJson(r.paper_cam_from_sensor)}};
-          (*metrics)["observations"] = obs.size();
-          (*metrics)["rms_px"] = r.rms_px;
-          (*metrics)["paper_rms_px"] = r.paper_rms_px;
-          (*metrics)["inliers"] = r.inliers;
-          (*metrics)["paper_inliers"] = r.paper_inliers;
-          (*metrics)["bias_rounds"] = r.bias_rounds;
-          (*metrics)["mean_bias_px"] = r.mean_bias_px;
-          (*metrics)["outliers"] = r.outliers;
-          (*metrics)["oblique_excluded"] = r.oblique;
-          (*metrics)["view_bound_deg"] = r.view_bound_deg;
-          (*metrics)["moved_from_nominal_mm"] =
-              TranslationDifferenceMm(r.cam_from_sensor, inputs.nominal_cam_from_sensor);
-          (*metrics)["moved_from_nominal_deg"] =
-              RotationDifferenceRad(r.cam_from_sensor, inputs.nominal_cam_from_sensor) * 180.0 /
-              M_PI;
-          const std::string text = out.dump();
-          return std::vector<std::uint8_t>(text.begin(), text.end());
-        },
-        &pose_metrics);
-    const Json pose = Json::parse(FromBytes(blob));
-    result.cam_from_sensor = PoseFromJson(pose.at("cam_from_sensor"));
-    if (truth != nullptr) {
-      if (const auto true_pose = truth->TrueCamFromSensor()) {
-        const Rigid3d paper = PoseFromJson(pose.at("paper_cam_from_sensor"));
-        pose_metrics["error_mm"] = TranslationDifferenceMm(result.cam_from_sensor, *true_pose);
-        pose_metrics["error_deg"] =
-            RotationDifferenceRad(result.cam_from_sensor, *true_pose) * 180.0 / M_PI;
-        pose_metrics["paper_error_mm"] = TranslationDifferenceMm(paper, *true_pose);
-        pose_metrics["paper_error_deg"] = RotationDifferenceRad(paper, *true_pose) * 180.0 / M_PI;
+void Calibration::Intrinsics() {
+  Hasher boards;
+  std::vector<cv::Mat> images;
+  for (const auto& path : inputs_.checkerboard_images) {
+    std::ifstream in(path, std::ios::binary);
+    if (!in)
+      throw std::runtime_error("intrinsics: cannot read checkerboard image " + path.string());
+    std::vector<std::uint8_t> bytes((std::istreambuf_iterator<char>(in)),
+                                    std::istreambuf_iterator<char>());
+    boards.Add(bytes.data(), bytes.size());
+    cv::Mat img = cv::imdecode(bytes, cv::IMREAD_GRAYSCALE);
+    if (img.empty())
+      throw std::runtime_error("intrinsics: " + path.string() + " is not a readable image");
+    images.push_back(img);
+  }
+  keys_["checkerboards"] = boards.Hex();
+  const auto blob = runner_.Run("intrinsics", Key("intrinsics"), [&](Json* metrics) {
+    Json out;
+    if (images.empty()) {
+      out = IntrinsicsToJson(inputs_.nominal_intrinsics);
+      (*metrics)["source"] = "nominal (no checkerboard images given)";
+    } else {
+      IntrinsicsResult r;
+      try {
+        r = CalibrateIntrinsics(images, inputs_.nominal_intrinsics, options_.intrinsics);
+      } catch (const std::exception& e) {
+        throw std::runtime_error(std::string("intrinsics: ") + e.what());
       }
+      out = IntrinsicsToJson(r.intrinsics);
+      (*metrics)["source"] = "checkerboards";
+      (*metrics)["rms_px"] = r.rms_px;
+      (*metrics)["images_used"] = r.used.size();
+      (*metrics)["images_rejected"] = r.rejected.size();
+      (*metrics)["radial_coverage"] = r.radial_coverage;
     }
-  }
+    (*metrics)["intrinsics"] = out;
+    const std::string text = out.dump();
+    return std::vector<std::uint8_t>(text.begin(), text.end());
+  });
+  result_.intrinsics = IntrinsicsFromJson(Json::parse(FromBytes(blob)));
+  camera_.emplace(result_.intrinsics);
+}
 
-  // ---- 4. surface map at the calibrated pose ----
-  std::shared_ptr<const SurfaceMap> map;
-  std::string map_key;
-  {
-    Hasher h;
-    h.Add("surface_map/1").Add(pose_key).Add(intrinsics_key).Add(geometry_key);
-    h.AddDouble(options.surface_map.max_view_angle_deg)
-        .AddDouble(options.surface_map.fin_margin_px);
-    map_key = h.Hex();
-    SurfaceMapOptions mo = options.surface_map;
-    mo.threads = options.threads;
-    const auto blob = runner.Run("surface_map", map_key, [&](Json* metrics) {
-      const SurfaceMap m =
-          SurfaceMap::Build(camera, result.cam_from_sensor, gel_bvh, fin_bvh.get(), mo);
-      (*metrics)["visible"] = m.stats().visible;
-      (*metrics)["fin"] = m.stats().fin;
-      (*metrics)["grazing"] = m.stats().grazing;
-      (*metrics)["no_hit"] = m.stats().no_hit;
-      (*metrics)["build_seconds"] = m.stats().build_seconds;
-      return m.Serialize();
-    });
-    map = std::make_shared<const SurfaceMap>(SurfaceMap::Deserialize(blob));
+void Calibration::Impressions() {
+  const auto blob = runner_.Run("impressions", Key("impressions"), [&](Json* metrics) {
+    std::vector<Found> found(probes_.size());
+    std::vector<FrameLoader> loaders(static_cast<std::size_t>(options_.threads));
+    ParallelOverProbes(db_.path(), probes_.size(), options_.threads,
+                       [&](std::size_t k, int t, RunDatabase& conn) {
+                         FrameLoader& fl = loaders[static_cast<std::size_t>(t)];
+                         const cv::Mat press = fl.Press(conn, probes_[k]);
+                         const cv::Mat ref = fl.Reference(conn, probes_[k]);
+                         const auto imp = FindImpressionRegion(press, ref, options_.impression);
+                         if (imp) found[k] = {true, imp->centroid, imp->peak_dn, imp->pixels};
+                       });
+    std::vector<std::uint8_t> out;
+    int ok = 0;
+    for (const Found& f : found) {
+      PutPod(&out, static_cast<std::uint8_t>(f.ok));
+      PutPod(&out, f.centroid.x()), PutPod(&out, f.centroid.y());
+      PutPod(&out, f.peak), PutPod(&out, static_cast<std::int32_t>(f.pixels));
+      ok += f.ok ? 1 : 0;
+    }
+    (*metrics)["probes"] = probes_.size();
+    (*metrics)["impressions_found"] = ok;
+    return out;
+  });
+  impressions_.assign(probes_.size(), Found{});
+  ByteReader r(blob, "impressions");
+  for (Found& f : impressions_) {
+    f.ok = r.Pod<std::uint8_t>() != 0;
+    const double x = r.Pod<double>(), y = r.Pod<double>();
+    f.centroid = Eigen::Vector2d(x, y);
+    f.peak = r.Pod<double>();
+    f.pixels = r.Pod<std::int32_t>();
   }
+}
 
-  // ---- 5. render ----
-  std::map<int, ProbeRender> renders;
-  std::string render_key;
-  {
-    Hasher h;
-    h.Add("render/2").Add(map_key).Add(frames_key);
-    h.AddDouble(options.render.margin_px).AddDouble(options.render.max_slope_deg);
-    render_key = h.Hex();
-    const auto blob = runner.Run("render", render_key, [&](Json* metrics) {
-      std::vector<std::pair<int, ProbeRender>> out(probes.size());
-      std::vector<std::thread> pool;
-      const int threads = options.threads;
-      auto work = [&](int t) {
-        for (std::size_t k = static_cast<std::size_t>(t); k < probes.size();
-             k += static_cast<std::size_t>(threads)) {
-          out[k] = {probes[k].plan_index,
-                    RenderProbe(*map, camera, result.cam_from_sensor * probes[k].ball_sensor,
-                                inputs.ball_radius, options.render)};
+void Calibration::Pose() {
+  const auto compute = [&](Json* metrics) {
+    std::vector<PoseObservation> obs;
+    for (std::size_t k = 0; k < probes_.size(); ++k) {
+      if (!impressions_[k].ok) continue;
+      PoseObservation o;
+      o.probe_index = probes_[k].plan_index;
+      o.contact_point_sensor = probes_[k].point_sensor;
+      o.contact_normal_sensor = probes_[k].normal_sensor;
+      o.ball_center_sensor = probes_[k].ball_sensor;
+      o.centroid_px = impressions_[k].centroid;
+      obs.push_back(o);
+    }
+    PoseResult r;
+    try {
+      PoseOptions run_options = options_.pose;
+      run_options.ball_radius_mm = inputs_.ball_radius;
+      run_options.threads = options_.threads;
+      r = EstimateCamFromSensor(Camera(), obs, inputs_.nominal_cam_from_sensor, run_options,
+                                PoseScene{&GelBvh(), FinBvh()});
+    } catch (const std::exception& e) {
+      throw std::runtime_error(std::string("pose: ") + e.what());
+    }
+    const Rigid3d& nominal = inputs_.nominal_cam_from_sensor;
+    (*metrics)["observations"] = obs.size();
+    (*metrics)["rms_px"] = r.rms_px;
+    (*metrics)["paper_rms_px"] = r.paper_rms_px;
+    (*metrics)["inliers"] = r.inliers;
+    (*metrics)["paper_inliers"] = r.paper_inliers;
+    (*metrics)["bias_rounds"] = r.bias_rounds;
+    (*metrics)["mean_bias_px"] = r.mean_bias_px;
+    (*metrics)["outliers"] = r.outliers;
+    (*metrics)["oblique_excluded"] = r.oblique;
+    (*metrics)["view_bound_deg"] = r.view_bound_deg;
+    (*metrics)["moved_from_nominal_mm"] = TranslationDifferenceMm(r.cam_from_sensor, nominal);
+    (*metrics)["moved_from_nominal_deg"] =
+        RotationDifferenceRad(r.cam_from_sensor, nominal) * 180.0 / M_PI;
+    const std::string text = Json{{"cam_from_sensor", PoseToJson(r.cam_from_sensor)},
+                                  {"paper_cam_from_sensor", PoseToJson(r.paper_cam_from_sensor)}}
+                                 .dump();
+    return std::vector<std::uint8_t>(text.begin(), text.end());
+  };
+  const auto blob = runner_.Run("pose", Key("pose"), compute, &pose_metrics_);
+  const Json pose = Json::parse(FromBytes(blob));
+  result_.cam_from_sensor = PoseFromJson(pose.at("cam_from_sensor"));
+  const auto true_pose = truth_ != nullptr ? truth_->TrueCamFromSensor() : std::nullopt;
+  if (true_pose) {
+    const Rigid3d paper = PoseFromJson(pose.at("paper_cam_from_sensor"));
+    pose_metrics_["error_mm"] = TranslationDifferenceMm(result_.cam_from_sensor, *true_pose);
+    pose_metrics_["error_deg"] =
+        RotationDifferenceRad(result_.cam_from_sensor, *true_pose) * 180.0 / M_PI;
+    pose_metrics_["paper_error_mm"] = TranslationDifferenceMm(paper, *true_pose);
+    pose_metrics_["paper_error_deg"] = RotationDifferenceRad(paper, *true_pose) * 180.0 / M_PI;
+  }
+}
+
+// The surface map at the calibrated pose.
+void Calibration::BuildSurfaceMap() {
+  SurfaceMapOptions mo = options_.surface_map;
+  mo.threads = options_.threads;
+  const auto blob = runner_.Run("surface_map", Key("surface_map"), [&](Json* metrics) {
+    const SurfaceMap m =
+        SurfaceMap::Build(Camera(), result_.cam_from_sensor, GelBvh(), FinBvh(), mo);
+    (*metrics)["visible"] = m.stats().visible;
+    (*metrics)["fin"] = m.stats().fin;
+    (*metrics)["grazing"] = m.stats().grazing;
+    (*metrics)["no_hit"] = m.stats().no_hit;
+    (*metrics)["build_seconds"] = m.stats().build_seconds;
+    return m.Serialize();
+  });
+  map_ = std::make_shared<const SurfaceMap>(SurfaceMap::Deserialize(blob));
+}
+
+void Calibration::Render() {
+  const auto blob = runner_.Run("render", Key("render"), [&](Json* metrics) {
+    std::vector<std::pair<int, ProbeRender>> out(probes_.size());
+    std::vector<std::thread> pool;
+    const int threads = options_.threads;
+    auto work = [&](int t) {
+      for (std::size_t k = static_cast<std::size_t>(t); k < probes_.size();
+           k += static_cast<std::size_t>(threads)) {
+        out[k] = {probes_[k].plan_index,
+                  RenderProbe(*map_, Camera(), result_.cam_from_sensor * probes_[k].ball_sensor,
+                              inputs_.ball_radius, options_.render)};
+      }
+    };
+    for (int t = 1; t < threads; ++t) pool.emplace_back(work, t);
+    work(0);
+    for (auto& th : pool) th.join();
+    std::int64_t contact = 0;
+    int with_contact = 0;
+    for (const auto& [i, r] : out) {
+      contact += r.contact_pixels;
+      with_contact += r.contact_pixels > 0 ? 1 : 0;
+    }
+    (*metrics)["probes"] = out.size();
+    (*metrics)["probes_with_contact"] = with_contact;
+    (*metrics)["contact_pixels"] = contact;
+    return SparseRenders(out);
+  });
+  renders_ = RendersFromSparse(blob, *map_);
+}
+
+void Calibration::BuildDataset() {
+  // The sample budget becomes a per-probe cap over the probes that will contribute.
+  std::size_t contributing = 0;
+  for (const auto& [index, render] : renders_) {
+    contributing += render.contact_pixels >= options_.dataset.min_contact_pixels ? 1 : 0;
+  }
+  DatasetOptions d = options_.dataset;
+  d.max_contact_samples_per_probe = d.ContactSamplesPerProbe(contributing);
+  keys_["samples_per_probe"] = std::to_string(d.max_contact_samples_per_probe);
+  const DifferenceOptions& difference = options_.reconstruction.difference;
+  const auto blob = runner_.Run("dataset", Key("dataset"), [&](Json* metrics) {
+    const cv::Mat visible = map_->VisibleMask();
+    std::vector<Dataset> parts(probes_.size());
+    std::vector<FrameLoader> loaders(static_cast<std::size_t>(options_.threads));
+    ParallelOverProbes(
+        db_.path(), probes_.size(), options_.threads, [&](std::size_t k, int t, RunDatabase& conn) {
+          auto it = renders_.find(probes_[k].plan_index);
+          if (it == renders_.end() || it->second.contact_pixels < d.min_contact_pixels) return;
+          FrameLoader& fl = loaders[static_cast<std::size_t>(t)];
+          const cv::Mat diff = NormalizedDifference(
+              fl.Press(conn, probes_[k]), fl.Reference(conn, probes_[k]), visible, difference);
+          cv::Mat penetration;
+          if (d.edge_exclusion_mm > 0.0) {
+            penetration = NormalPenetration(*map_, it->second.roi,
+                                            result_.cam_from_sensor * probes_[k].ball_sensor,
+                                            inputs_.ball_radius);
+          }
+          const cv::Mat context =
+              ContextFeatures(diff, visible, it->second.roi, difference.context_sigmas_px);
+          AppendProbeSamples(diff, it->second, probes_[k].plan_index, d, &parts[k], penetration,
+                             context);
+        });
+    Dataset all = MergeProbeSamples(parts, probes_, FeatureCount(difference));
+    if (all.probes.size() < 10) {
+      throw std::runtime_error("dataset: only " + std::to_string(all.probes.size()) +
+                               " probes have a rendered contact of at least " +
+                               std::to_string(d.min_contact_pixels) +
+                               " pixels; is the camera pose right?");
+    }
+    all.probe_split = SplitProbes(all.probes, d);
+    (*metrics)["samples"] = all.probe.size();
+    (*metrics)["contact_samples_per_probe"] = d.max_contact_samples_per_probe;
+    (*metrics)["probes"] = all.probes.size();
+    (*metrics)["train_samples"] = all.Count(Split::kTrain);
+    (*metrics)["validation_samples"] = all.Count(Split::kValidation);
+    (*metrics)["test_probes"] = all.ProbesIn(Split::kTest).size();
+    return all.Serialize();
+  });
+  dataset_ = Dataset::Deserialize(blob);
+}
+
+void Calibration::TrainMlp() {
+  TrainOptions to = options_.train;
+  to.threads = options_.threads;
+  Json metrics_out;
+  const auto blob = runner_.Run(
+      "train", Key("train"),
+      [&](Json* metrics) {
+        const Eigen::MatrixXf xt = dataset_.X(Split::kTrain), yt = dataset_.Y(Split::kTrain);
+        const Eigen::MatrixXf xv = dataset_.X(Split::kValidation),
+                              yv = dataset_.Y(Split::kValidation);
+        TrainResult r = Train(xt, yt, xv, yv, to, [&](int epoch, double tl, double vl) {
+          if (epoch % 5 == 0) {
+            runner_.Log("train", "epoch " + std::to_string(epoch) + ": train loss " +
+                                     std::to_string(tl) + ", validation loss " +
+                                     std::to_string(vl));
+          }
+        });
+        Json c = Json::array();
+        for (const TrainEpoch& e : r.curve) {
+          c.push_back({e.epoch, e.train_loss, e.val_loss, e.seconds, e.learning_rate});
         }
-      };
-      for (int t = 1; t < threads; ++t) pool.emplace_back(work, t);
-      work(0);
-      for (auto& th : pool) th.join();
-      std::int64_t contact = 0;
-      int with_contact = 0;
-      for (const auto& [i, r] : out) {
-        contact += r.contact_pixels;
-        with_contact += r.contact_pixels > 0 ? 1 : 0;
-      }
-      (*metrics)["probes"] = out.size();
-      (*metrics)["probes_with_contact"] = with_contact;
-      (*metrics)["contact_pixels"] = contact;
-      return SparseRenders(out);
-    });
-    renders = RendersFromSparse(blob, *map);
+        (*metrics)["curve"] = c;
+        (*metrics)["best_epoch"] = r.best_epoch;
+        (*metrics)["best_val_loss"] = r.best_val_loss;
+        (*metrics)["epochs"] = r.curve.size();
+        (*metrics)["stopped_early"] = r.stopped_early;
+        (*metrics)["train_samples"] = xt.cols();
+        (*metrics)["validation_samples"] = xv.cols();
+        (*metrics)["parameters"] = r.mlp.ParameterCount();
+        return r.mlp.Serialize();
+      },
+      &metrics_out);
+  mlp_ = Mlp::Deserialize(blob);
+  for (const auto& e : metrics_out.value("curve", Json::array())) {
+    curve_.push_back({e[0].get<int>(), e[1].get<double>(), e[2].get<double>(), e[3].get<double>(),
+                      e[4].get<double>()});
   }
-
-  // ---- 6. dataset ----
-  Dataset dataset;
-  std::string dataset_key;
-  {
-    // The sample budget becomes a per-probe cap over the probes that will contribute.
-    std::size_t contributing = 0;
-    for (const auto& [index, render] : renders) {
-      contributing += render.contact_pixels >= options.dataset.min_contact_pixels ? 1 : 0;
-    }
-    DatasetOptions d = options.dataset;
-    d.max_contact_samples_per_probe = d.ContactSamplesPerProbe(contributing);
-    Hasher h;
-    h.Add("dataset/2").Add(render_key).Add(frames_key);
-    h.AddPod(d.max_contact_samples_per_probe).AddDouble(d.non_contact_fraction);
-    h.AddPod(d.min_contact_pixels).AddDouble(d.validation_fraction).AddDouble(d.test_fraction);
-    h.AddPod(d.seed);
-    if (d.edge_exclusion_mm > 0.0) h.Add("edge").AddDouble(d.edge_exclusion_mm);
-    h.Add(ReconstructionOptionsToJson(options.reconstruction).at("difference").dump());
-    dataset_key = h.Hex();
-    const auto blob = runner.Run("dataset", dataset_key, [&](Json* metrics) {
-      const cv::Mat visible = map->VisibleMask();
-      std::vector<Dataset> parts(probes.size());
-      std::vector<FrameLoader> loaders(static_cast<std::size_t>(options.threads));
-      ParallelOverProbes(
-          db.path(), probes.size(), options.threads, [&](std::size_t k, int t, RunDatabase& conn) {
-            auto it = renders.find(probes[k].plan_index);
-            if (it == renders.end() ||
-                it->second.contact_pixels < options.dataset.min_contact_pixels) {
-              return;
-            }
-            FrameLoader& fl = loaders[static_cast<std::size_t>(t)];
-            const cv::Mat press = fl.Press(conn, probes[k]);
-            const cv::Mat ref = fl.Reference(conn, probes[k]);
-            const cv::Mat diff =
-                NormalizedDifference(press, ref, visible, options.reconstruction.difference);
-            cv::Mat penetration;
-            if (options.dataset.edge_exclusion_mm > 0.0) {
-              penetration = NormalPenetration(*map, it->second.roi,
-                                              result.cam_from_sensor * probes[k].ball_sensor,
-                                              inputs.ball_radius);
-            }
-            const cv::Mat context = ContextFeatures(
-                diff, visible, it->second.roi, options.reconstruction.difference.context_sigmas_px);
-            AppendProbeSamples(diff, it->second, probes[k].plan_index, d, &parts[k], penetration,
-                               context);
-          });
-      Dataset all;
-      std::size_t n = 0;
-      for (const Dataset& p : parts) n += p.probe.size();
-      all.x.resize(FeatureCount(options.reconstruction.difference), static_cast<Eigen::Index>(n));
-      all.y.resize(2, static_cast<Eigen::Index>(n));
-      Eigen::Index c = 0;
-      for (std::size_t k = 0; k < parts.size(); ++k) {
-        const Dataset& p = parts[k];
-        if (p.probe.empty()) continue;
-        all.x.middleCols(c, p.x.cols()) = p.x;
-        all.y.middleCols(c, p.y.cols()) = p.y;
-        c += p.x.cols();
-        all.probe.insert(all.probe.end(), p.probe.begin(), p.probe.end());
-        all.contact.insert(all.contact.end(), p.contact.begin(), p.contact.end());
-        all.probes.push_back(probes[k].plan_index);
-      }
-      if (all.probes.size() < 10) {
-        throw std::runtime_error("dataset: only " + std::to_string(all.probes.size()) +
-                                 " probes have a rendered contact of at least " +
-                                 std::to_string(options.dataset.min_contact_pixels) +
-                                 " pixels; is the camera pose right?");
-      }
-      all.probe_split = SplitProbes(all.probes, options.dataset);
-      (*metrics)["samples"] = n;
-      (*metrics)["contact_samples_per_probe"] = d.max_contact_samples_per_probe;
-      (*metrics)["probes"] = all.probes.size();
-      (*metrics)["train_samples"] = all.Count(Split::kTrain);
-      (*metrics)["validation_samples"] = all.Count(Split::kValidation);
-      (*metrics)["test_probes"] = all.ProbesIn(Split::kTest).size();
-      return all.Serialize();
-    });
-    dataset = Dataset::Deserialize(blob);
-  }
-
-  // ---- 7. train ----
-  Mlp mlp;
-  std::string train_key;
-  std::vector<TrainEpoch> curve;
-  {
-    Hasher h;
-    TrainOptions to = options.train;
-    to.threads = options.threads;
-    h.Add("train/1").Add(dataset_key).Add(TrainOptionsJson(to).dump());
-    train_key = h.Hex();
-    Json metrics_out;
-    const auto blob = runner.Run(
-        "train", train_key,
-        [&](Json* metrics) {
-          const Eigen::MatrixXf xt = dataset.X(Split::kTrain), yt = dataset.Y(Split::kTrain);
-          const Eigen::MatrixXf xv = dataset.X(Split::kValidation),
-                                yv = dataset.Y(Split::kValidation);
-          TrainResult r = Train(xt, yt, xv, yv, to, [&](int epoch, double tl, double vl) {
-            if (epoch % 5 == 0) {
-              runner.Log("train", "epoch " + std::to_string(epoch) + ": train loss " +
-                                      std::to_string(tl) + ", validation loss " +
-                                      std::to_string(vl));
-            }
-          });
-          Json c = Json::array();
-          for (const TrainEpoch& e : r.curve) {
-            c.push_back({e.epoch, e.train_loss, e.val_loss, e.seconds, e.learning_rate});
-          }
-          (*metrics)["curve"] = c;
-          (*metrics)["best_epoch"] = r.best_epoch;
-          (*metrics)["best_val_loss"] = r.best_val_loss;
-          (*metrics)["epochs"] = r.curve.size();
-          (*metrics)["stopped_early"] = r.stopped_early;
-          (*metrics)["train_samples"] = xt.cols();
-          (*metrics)["validation_samples"] = xv.cols();
-          (*metrics)["parameters"] = r.mlp.ParameterCount();
-          return r.mlp.Serialize();
-        },
-        &metrics_out);
-    mlp = Mlp::Deserialize(blob);
-    if (metrics_out.contains("curve")) {
-      for (const auto& e : metrics_out["curve"]) {
-        TrainEpoch te;
-        te.epoch = e[0].get<int>();
-        te.train_loss = e[1].get<double>();
-        te.val_loss = e[2].get<double>();
-        te.seconds = e[3].get<double>();
-        te.learning_rate = e[4].get<double>();
-        curve.push_back(te);
-      }
-    }
-  }
-
   // The reference the model ships with: the run's latest no-contact frame.
-  const auto latest_ref = db.LatestFrame(run_id, FrameKind::kReference);
+  const auto latest_ref = db_.LatestFrame(run_id_, FrameKind::kReference);
   if (!latest_ref) throw std::runtime_error("calibrate: run has no reference frame");
-  const cv::Mat reference = db.LoadFrame(latest_ref->id);
-  const Reconstructor reconstructor(map, camera, mlp, reference, options.reconstruction);
+  reference_ = db_.LoadFrame(latest_ref->id);
+}
 
-  // ---- 8. validate ----
-  std::string validate_key;
-  std::string html;
-  {
-    Hasher h;
-    const ValidationOptions& vo = options.validation;
-    h.Add("validate/4").Add(train_key).Add(map_key).Add(dataset_key);
-    h.Add(ReconstructionOptionsToJson(options.reconstruction).dump());
-    h.AddPod(vo.max_probes).AddDouble(vo.fin_near_mm).AddPod(vo.examples);
-    h.Add(truth != nullptr ? truth->Describe() : std::string("no truth"));
-    validate_key = h.Hex();
-    const auto blob = runner.Run("validate", validate_key, [&](Json* metrics) {
-      std::map<int, std::size_t> by_index;
-      for (std::size_t k = 0; k < probes.size(); ++k) by_index[probes[k].plan_index] = k;
-      std::vector<int> held_out;
-      for (int p : dataset.ProbesIn(Split::kTest)) held_out.push_back(p);
-      std::vector<std::unique_ptr<RunDatabase>> conns;
-      std::vector<FrameLoader> loaders(static_cast<std::size_t>(options.validation.threads));
-      for (int t = 0; t < options.validation.threads; ++t) {
-        RunDatabaseOptions ro;
-        ro.read_only = true;
-        conns.push_back(std::make_unique<RunDatabase>(db.path(), ro));
-      }
-      const ValidationProbeLoader load = [&](int plan_index, int thread) {
-        const ProbeInfo& p = probes[by_index.at(plan_index)];
-        ValidationProbe vp;
-        vp.plan_index = plan_index;
-        vp.contact_point_sensor = p.point_sensor;
-        vp.ball_center_sensor = p.ball_sensor;
-        RunDatabase& conn = *conns[static_cast<std::size_t>(thread)];
-        vp.frame = loaders[static_cast<std::size_t>(thread)].Press(conn, p);
-        vp.reference = loaders[static_cast<std::size_t>(thread)].Reference(conn, p);
-        return vp;
-      };
-      const double height = inputs.gel_mesh.Bounds().max().z();
-      ValidationResult v = Validate(reconstructor, held_out, load, inputs.ball_radius, height,
-                                    truth, options.validation);
-      v.report["pose"] = pose_metrics;
-      // Per evaluated probe: contact point (sensor frame, mm) and mean depth error (mm), for
-      // error maps outside the HTML report (the daemon's dashboard).
-      Json probe_errors = Json::array();
-      for (const auto& [point, error] : v.probe_errors) {
-        probe_errors.push_back({point.x(), point.y(), point.z(), error});
-      }
-      v.report["probe_errors"] = probe_errors;
-      ReportInputs ri;
-      ri.title = "gs360 calibration: run " + std::to_string(run_id) + " (" + inputs.sensor + ")";
-      ri.validation = v.report;
-      Json stages = Json::array();
-      for (const StageReport& s : result.stages) {
-        stages.push_back({{"stage", s.stage},
-                          {"input_hash", s.input_hash},
-                          {"cached", s.cached},
-                          {"seconds", s.seconds},
-                          {"metrics", s.metrics}});
-      }
-      ri.stages = stages;
-      ri.curve = curve;
-      ri.examples = v.examples;
-      ri.probe_errors = v.probe_errors;
-      ri.gel_height_mm = height;
-      (*metrics)["summary"] = v.report;
-      const Json out{{"validation", v.report}, {"html", RenderReportHtml(ri)}};
-      const std::string text = out.dump();
-      return std::vector<std::uint8_t>(text.begin(), text.end());
-    });
-    const Json out = Json::parse(FromBytes(blob));
-    result.validation = out.at("validation");
-    html = out.at("html").get<std::string>();
-  }
+void Calibration::ValidateModel() {
+  const auto blob = runner_.Run("validate", Key("validate"), [&](Json* metrics) {
+    const Json out = ValidateProbes();
+    (*metrics)["summary"] = out.at("validation");
+    const std::string text = out.dump();
+    return std::vector<std::uint8_t>(text.begin(), text.end());
+  });
+  const Json out = Json::parse(FromBytes(blob));
+  result_.validation = out.at("validation");
+  html_ = out.at("html").get<std::string>();
+}
 
-  // ---- 9. export ----
-  {
-    const std::filesystem::path dir = options.export_dir.empty()
-                                          ? std::filesystem::absolute(db.path()).parent_path()
-                                          : options.export_dir;
-    const std::string name =
-        options.model_name.empty() ? "run-" + std::to_string(run_id) : options.model_name;
-    const std::string version =
-        options.model_version.empty() ? train_key.substr(0, 8) : options.model_version;
-    const std::string stem = name + "-" + version;
-    result.model_path = dir / (stem + ".gs360model");
-    result.onnx_path = dir / (stem + ".onnx");
-    result.report_path = dir / (stem + "-report.html");
-    result.validation_path = dir / (stem + "-validation.json");
-    Hasher h;
-    h.Add("export/1").Add(validate_key).Add(name).Add(version).Add(dir.string());
-    runner.Run(
-        "export", h.Hex(),
-        [&](Json* metrics) {
-          std::filesystem::create_directories(dir);
-          ModelBundle bundle;
-          bundle.name = name;
-          bundle.version = version;
-          bundle.gs360_version = "0.1.0";
-          bundle.created_at =
-              static_cast<double>(std::chrono::duration_cast<std::chrono::seconds>(
-                                      std::chrono::system_clock::now().time_since_epoch())
-                                      .count());
-          bundle.sensor = inputs.sensor;
-          bundle.intrinsics = result.intrinsics;
-          bundle.cam_from_sensor = result.cam_from_sensor;
-          bundle.gel_mesh = inputs.gel_mesh;
-          bundle.fin_mesh = inputs.fin_mesh;
-          bundle.surface_map = options.surface_map;
-          bundle.reference = reference;
-          bundle.mlp = mlp;
-          bundle.reconstruction = options.reconstruction;
-          bundle.metrics = Json{{"run_id", run_id},
-                                {"validation", result.validation.value("results", Json::object())}};
-          const std::vector<std::uint8_t> bytes = WriteModelBundle(result.model_path, bundle);
-          OnnxExportOptions onnx;
-          for (double sigma : options.reconstruction.difference.context_sigmas_px) {
-            onnx.input_description +=
-                ", then dR/du, dR/dv, dG/du, dG/dv, dB/du, dB/dv (per px) of the change smoothed "
-                "by a Gaussian of sigma " +
-                std::to_string(sigma) + " px";
-          }
-          WriteOnnxFile(result.onnx_path, mlp, onnx);
-          const auto existing = db.GetModel(name, version);
-          if (!existing) {
-            db.PutModel(name, version, bytes, Json{{"file", result.model_path.string()}}.dump(),
-                        run_id);
-          }
-          (*metrics)["model"] = result.model_path.string();
-          (*metrics)["onnx"] = result.onnx_path.string();
-          (*metrics)["bundle_bytes"] = bytes.size();
-          (*metrics)["onnx_bytes"] = std::filesystem::file_size(result.onnx_path);
-          const std::string text = Json{{"model", result.model_path.string()}}.dump();
-          return std::vector<std::uint8_t>(text.begin(), text.end());
-        },
-        nullptr,
-        // The files are the product: write them again if someone deleted them.
-        !std::filesystem::exists(result.model_path) || !std::filesystem::exists(result.onnx_path));
-    std::filesystem::create_directories(dir);
-    WriteTextFile(result.report_path, html);
-    WriteTextFile(result.validation_path, result.validation.dump(2));
+// The held-out probes through the reconstructor: {"validation": ..., "html": the report}.
+Json Calibration::ValidateProbes() {
+  const Reconstructor reconstructor(map_, Camera(), mlp_, reference_, options_.reconstruction);
+  std::map<int, std::size_t> by_index;
+  for (std::size_t k = 0; k < probes_.size(); ++k) by_index[probes_[k].plan_index] = k;
+  const std::vector<std::int32_t> test = dataset_.ProbesIn(Split::kTest);
+  const std::vector<int> held_out(test.begin(), test.end());
+  const int threads = options_.validation.threads;
+  std::vector<std::unique_ptr<RunDatabase>> conns;
+  std::vector<FrameLoader> loaders(static_cast<std::size_t>(threads));
+  for (int t = 0; t < threads; ++t) {
+    RunDatabaseOptions ro;
+    ro.read_only = true;
+    conns.push_back(std::make_unique<RunDatabase>(db_.path(), ro));
   }
-  result.seconds = Since(t_start);
-  return result;
+  const ValidationProbeLoader load = [&](int plan_index, int thread) {
+    const ProbeInfo& p = probes_[by_index.at(plan_index)];
+    ValidationProbe vp;
+    vp.plan_index = plan_index;
+    vp.contact_point_sensor = p.point_sensor;
+    vp.ball_center_sensor = p.ball_sensor;
+    RunDatabase& conn = *conns[static_cast<std::size_t>(thread)];
+    vp.frame = loaders[static_cast<std::size_t>(thread)].Press(conn, p);
+    vp.reference = loaders[static_cast<std::size_t>(thread)].Reference(conn, p);
+    return vp;
+  };
+  const double height = inputs_.gel_mesh.Bounds().max().z();
+  ValidationResult v = Validate(reconstructor, held_out, load, inputs_.ball_radius, height, truth_,
+                                options_.validation);
+  v.report["pose"] = pose_metrics_;
+  // Per evaluated probe: contact point (sensor frame, mm) and mean depth error (mm), for error
+  // maps outside the HTML report (the daemon's dashboard).
+  Json probe_errors = Json::array();
+  for (const auto& [point, error] : v.probe_errors) {
+    probe_errors.push_back({point.x(), point.y(), point.z(), error});
+  }
+  v.report["probe_errors"] = probe_errors;
+  ReportInputs ri;
+  ri.title = "gs360 calibration: run " + std::to_string(run_id_) + " (" + inputs_.sensor + ")";
+  ri.validation = v.report;
+  Json stages = Json::array();
+  for (const StageReport& s : result_.stages) {
+    stages.push_back({{"stage", s.stage},
+                      {"input_hash", s.input_hash},
+                      {"cached", s.cached},
+                      {"seconds", s.seconds},
+                      {"metrics", s.metrics}});
+  }
+  ri.stages = stages;
+  ri.curve = curve_;
+  ri.examples = v.examples;
+  ri.probe_errors = v.probe_errors;
+  ri.gel_height_mm = height;
+  return Json{{"validation", v.report}, {"html", RenderReportHtml(ri)}};
+}
+
+void Calibration::Export() {
+  const std::filesystem::path dir = options_.export_dir.empty()
+                                        ? std::filesystem::absolute(db_.path()).parent_path()
+                                        : options_.export_dir;
+  keys_["export_dir"] = Hasher().Add(dir.string()).Hex();
+  const std::string name =
+      options_.model_name.empty() ? "run-" + std::to_string(run_id_) : options_.model_name;
+  const std::string version =
+      options_.model_version.empty() ? keys_.at("train").substr(0, 8) : options_.model_version;
+  const std::string stem = name + "-" + version;
+  result_.model_path = dir / (stem + ".gs360model");
+  result_.onnx_path = dir / (stem + ".onnx");
+  result_.report_path = dir / (stem + "-report.html");
+  result_.validation_path = dir / (stem + "-validation.json");
+  runner_.Run(
+      "export", Key("export"),
+      [&](Json* metrics) {
+        std::filesystem::create_directories(dir);
+        *metrics = ExportModel(name, version);
+        const std::string text = Json{{"model", result_.model_path.string()}}.dump();
+        return std::vector<std::uint8_t>(text.begin(), text.end());
+      },
+      nullptr,
+      // The files are the product: write them again if someone deleted them.
+      !std::filesystem::exists(result_.model_path) || !std::filesystem::exists(result_.onnx_path));
+  std::filesystem::create_directories(dir);
+  WriteTextFile(result_.report_path, html_);
+  WriteTextFile(result_.validation_path, result_.validation.dump(2));
+}
+
+// Writes the bundle and the ONNX file, records the model; returns the stage's metrics.
+Json Calibration::ExportModel(const std::string& name, const std::string& version) {
+  ModelBundle bundle;
+  bundle.name = name;
+  bundle.version = version;
+  bundle.gs360_version = "0.1.0";
+  bundle.created_at = static_cast<double>(std::chrono::duration_cast<std::chrono::seconds>(
+                                              std::chrono::system_clock::now().time_since_epoch())
+                                              .count());
+  bundle.sensor = inputs_.sensor;
+  bundle.intrinsics = result_.intrinsics;
+  bundle.cam_from_sensor = result_.cam_from_sensor;
+  bundle.gel_mesh = inputs_.gel_mesh;
+  bundle.fin_mesh = inputs_.fin_mesh;
+  bundle.surface_map = options_.surface_map;
+  bundle.reference = reference_;
+  bundle.mlp = mlp_;
+  bundle.reconstruction = options_.reconstruction;
+  bundle.metrics = Json{{"run_id", run_id_},
+                        {"validation", result_.validation.value("results", Json::object())}};
+  const std::vector<std::uint8_t> bytes = WriteModelBundle(result_.model_path, bundle);
+  OnnxExportOptions onnx;
+  for (double sigma : options_.reconstruction.difference.context_sigmas_px) {
+    onnx.input_description +=
+        ", then dR/du, dR/dv, dG/du, dG/dv, dB/du, dB/dv (per px) of the change smoothed by a "
+        "Gaussian of sigma " +
+        std::to_string(sigma) + " px";
+  }
+  WriteOnnxFile(result_.onnx_path, mlp_, onnx);
+  if (!db_.GetModel(name, version)) {
+    db_.PutModel(name, version, bytes, Json{{"file", result_.model_path.string()}}.dump(), run_id_);
+  }
+  return Json{{"model", result_.model_path.string()},
+              {"onnx", result_.onnx_path.string()},
+              {"bundle_bytes", bytes.size()},
+              {"onnx_bytes", std::filesystem::file_size(result_.onnx_path)}};
+}
+
+}  // namespace
+
+CalibrationResult RunCalibration(RunDatabase& db, std::int64_t run_id,
+                                 const CalibrationInputs& inputs, const CalibrationOptions& options,
+                                 const ValidationTruth* truth, const CalibrationLog& log) {
+  options.Check();
+  return Calibration(db, run_id, inputs, options, truth, log).Run();
 }
 
 }  // namespace gs360

@@ -1,15 +1,15 @@
 #pragma once
 // The calibration stages run in order on a finished (or partly finished) run's database:
 //
-//   intrinsics -> surface_map (nominal pose) -> impressions -> pose -> surface_map (calibrated)
-//   -> render -> dataset -> train -> validate -> export
+//   intrinsics -> impressions -> pose -> surface_map -> render -> dataset -> train -> validate
+//   -> export
 //
-// Each stage is a function of stored inputs and options. Its input hash covers the stage's
-// version, its options and the hashes of everything it reads (upstream artifacts, frame
-// checksums, probe positions); its output is stored as an artifact keyed (run, stage, input
-// hash) with its figures as metrics JSON. A stage whose artifact exists is skipped and its output
-// loaded (like a build system); `from_stage` forces that stage and every later one to run again.
-// Changing an option re-runs exactly the stages that depend on it.
+// Each stage is a function of stored inputs and options (calib/stages.h lists what each reads and
+// computes its cache key from that list). Its output is stored as an artifact keyed (run, stage,
+// key) with its figures as metrics JSON. A stage whose artifact exists is skipped and its output
+// loaded (like a build system); `from_stage` forces that stage and every later one to run again,
+// `to_stage` stops after one, `only_stage` runs one on cached inputs. Changing an option re-runs
+// exactly the stages that read it and the ones downstream.
 //
 // Production code: this reads only the database and the rig's nominal description. Ground truth
 // (the virtual rig) enters only through the optional ValidationTruth, used for reporting.
@@ -24,12 +24,7 @@
 
 #include <nlohmann/json.hpp>
 
-#include "calib/dataset.h"
-#include "calib/impression_centroid.h"
-#include "calib/intrinsics.h"
-#include "calib/pose.h"
-#include "calib/render.h"
-#include "calib/train.h"
+#include "calib/stages.h"
 #include "calib/validate.h"
 #include "geometry/fisheye.h"
 #include "geometry/mesh.h"
@@ -40,9 +35,6 @@
 #include "storage/run_database.h"
 
 namespace gs360 {
-
-// The stage names, in order.
-const std::vector<std::string>& CalibrationStages();
 
 // What the rig's configuration says (nominal values only).
 struct CalibrationInputs {
@@ -57,24 +49,6 @@ struct CalibrationInputs {
   // Checkerboard images for the intrinsics stage (grey or colour, the camera's size). Empty: the
   // nominal intrinsics are used, and the report says so.
   std::vector<std::filesystem::path> checkerboard_images;
-};
-
-struct CalibrationOptions {
-  IntrinsicsOptions intrinsics;
-  SurfaceMapOptions surface_map;
-  ImpressionCentroidOptions impression;
-  PoseOptions pose;
-  ProbeRenderOptions render;
-  DatasetOptions dataset;
-  TrainOptions train;
-  ValidationOptions validation;
-  ReconstructionOptions reconstruction;
-  std::string from_stage;            // "" = use every cached stage
-  std::string model_name;            // export: default "run-<id>"
-  std::string model_version;         // export: default the train artifact's hash
-  std::filesystem::path export_dir;  // where model files go; "" = next to the database
-  int threads = 2;
-  void Check() const;  // throws std::invalid_argument naming the field
 };
 
 struct StageReport {

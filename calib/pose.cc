@@ -16,6 +16,7 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "base/field_error.h"
 #include "geometry/fisheye_cv.h"
 
 namespace gs360 {
@@ -23,9 +24,7 @@ namespace {
 
 template <typename T>
 [[noreturn]] void ThrowField(const char* field, T value, const char* what) {
-  std::ostringstream s;
-  s << "PoseOptions." << field << " " << what << ", got " << value;
-  throw std::invalid_argument(s.str());
+  ThrowFieldError(std::string("PoseOptions.") + field, static_cast<double>(value), what);
 }
 
 // pose(w, dt): rotation exp(w) R, translation t + dt (w rotates about the camera centre).
@@ -239,12 +238,10 @@ PoseFit RefineCamFromSensor(const FisheyeCamera& camera,
   return fit;
 }
 
-PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
-                                 std::span<const PoseObservation> observations,
-                                 const Rigid3d& nominal_cam_from_sensor, const PoseOptions& options,
-                                 const PoseScene& scene) {
-  const auto start = std::chrono::steady_clock::now();
-  options.Check();
+namespace {
+
+void CheckObservations(std::span<const PoseObservation> observations, const PoseOptions& options,
+                       const PoseScene& scene) {
   if (options.model_bias && scene.gel == nullptr) {
     throw std::invalid_argument(
         "EstimateCamFromSensor: PoseOptions.model_bias needs the gel mesh (PoseScene::gel)");
@@ -268,9 +265,14 @@ PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
                     " probe impressions, need at least " +
                     std::to_string(options.min_observations));
   }
-  PoseResult result;
+}
 
-  // 1. The paper's estimate: RANSAC PnP on undistorted centroids of a random subset.
+// 1. The paper's estimate: RANSAC PnP on undistorted centroids of a random subset. Sets the
+// result's paper_* fields.
+void EstimatePaperPose(const FisheyeCamera& camera, std::span<const PoseObservation> observations,
+                       const Rigid3d& nominal_cam_from_sensor, const PoseOptions& options,
+                       PoseResult* result) {
+  const std::size_t n = observations.size();
   std::vector<int> order(n);
   std::iota(order.begin(), order.end(), 0);
   std::mt19937_64 rng(options.seed);
@@ -318,43 +320,94 @@ PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
     for (int b = 0; b < 3; ++b) m(a, b) = r_cv(a, b);
     m(a, 3) = tvec[a];
   }
-  result.paper_cam_from_sensor = Rigid3d::FromMatrix(m);
-  result.paper_inliers = static_cast<int>(ransac_inliers.size());
-  {
-    double sum = 0.0;
-    for (int k : ransac_inliers) {
-      const PoseObservation& o = observations[static_cast<std::size_t>(order[k])];
-      sum +=
-          Residual(camera, result.paper_cam_from_sensor, o, Eigen::Vector2d::Zero()).squaredNorm();
-    }
-    result.paper_rms_px = std::sqrt(sum / static_cast<double>(ransac_inliers.size()));
+  result->paper_cam_from_sensor = Rigid3d::FromMatrix(m);
+  result->paper_inliers = static_cast<int>(ransac_inliers.size());
+  double sum = 0.0;
+  for (int k : ransac_inliers) {
+    const PoseObservation& o = observations[static_cast<std::size_t>(order[k])];
+    sum +=
+        Residual(camera, result->paper_cam_from_sensor, o, Eigen::Vector2d::Zero()).squaredNorm();
   }
+  result->paper_rms_px = std::sqrt(sum / static_cast<double>(ransac_inliers.size()));
+}
 
-  // 2. The observations the refinement uses: those seen at most max_view_angle_deg from their
-  // normal at the paper estimate (at least min_view_fraction of them, the least oblique).
+// 2. The observations the refinement uses: those seen at most max_view_angle_deg from their
+// normal at the paper estimate (at least min_view_fraction of them, the least oblique). Sets the
+// result's view_bound_deg and oblique.
+std::vector<PoseObservation> ChooseObservations(std::span<const PoseObservation> observations,
+                                                const PoseOptions& options, PoseResult* result) {
+  const std::size_t n = observations.size();
   std::vector<std::size_t> chosen;
-  {
-    std::vector<double> view(n);
-    for (std::size_t i = 0; i < n; ++i) {
-      view[i] = ObservationViewAngle(observations[i], result.paper_cam_from_sensor);
-    }
-    std::vector<double> sorted = view;
-    std::sort(sorted.begin(), sorted.end());
-    const std::size_t keep =
-        std::min(n, std::max(static_cast<std::size_t>(options.min_observations),
-                             static_cast<std::size_t>(
-                                 std::ceil(options.min_view_fraction * static_cast<double>(n)))));
-    const double bound =
-        std::max(options.max_view_angle_deg * std::numbers::pi / 180.0, sorted[keep - 1]);
-    for (std::size_t i = 0; i < n; ++i) {
-      if (view[i] <= bound) chosen.push_back(i);
-    }
-    result.view_bound_deg = bound * 180.0 / std::numbers::pi;
-    result.oblique = static_cast<int>(n - chosen.size());
+  std::vector<double> view(n);
+  for (std::size_t i = 0; i < n; ++i) {
+    view[i] = ObservationViewAngle(observations[i], result->paper_cam_from_sensor);
   }
+  std::vector<double> sorted = view;
+  std::sort(sorted.begin(), sorted.end());
+  const std::size_t keep =
+      std::min(n, std::max(static_cast<std::size_t>(options.min_observations),
+                           static_cast<std::size_t>(
+                               std::ceil(options.min_view_fraction * static_cast<double>(n)))));
+  const double bound =
+      std::max(options.max_view_angle_deg * std::numbers::pi / 180.0, sorted[keep - 1]);
+  for (std::size_t i = 0; i < n; ++i) {
+    if (view[i] <= bound) chosen.push_back(i);
+  }
+  result->view_bound_deg = bound * 180.0 / std::numbers::pi;
+  result->oblique = static_cast<int>(n - chosen.size());
   std::vector<PoseObservation> used;
   used.reserve(chosen.size());
   for (std::size_t i : chosen) used.push_back(observations[i]);
+  return used;
+}
+
+// 4. One round of the bias model: each observation's offset from its contact point's projection
+// to the centroid of its imprint rendered under `pose` (0 where the render has no contact).
+// Returns how many renders had no contact.
+int BiasOffsets(const FisheyeCamera& camera, const Rigid3d& pose,
+                const std::vector<PoseObservation>& used, const PoseOptions& options,
+                const PoseScene& scene, std::vector<Eigen::Vector2d>* offsets) {
+  const std::size_t n_used = used.size();
+  const SurfaceMap map =
+      SurfaceMap::Build(camera, pose, *scene.gel, scene.fins, options.surface_map);
+  std::vector<char> empty(n_used, 0);
+  auto work = [&](std::size_t begin, std::size_t end) {
+    for (std::size_t i = begin; i < end; ++i) {
+      const PoseObservation& o = used[i];
+      const ProbeRender pr = RenderProbe(map, camera, pose * o.ball_center_sensor,
+                                         options.ball_radius_mm, options.render);
+      if (pr.contact_pixels == 0) {
+        (*offsets)[i].setZero();
+        empty[i] = 1;
+        continue;
+      }
+      (*offsets)[i] = HullCentroid(pr) - camera.ProjectUnchecked(pose * o.contact_point_sensor);
+    }
+  };
+  const std::size_t threads =
+      std::min<std::size_t>(static_cast<std::size_t>(options.threads), n_used);
+  std::vector<std::thread> pool;
+  const std::size_t chunk = (n_used + threads - 1) / threads;
+  for (std::size_t t = 1; t < threads; ++t) {
+    pool.emplace_back(work, std::min(n_used, t * chunk), std::min(n_used, (t + 1) * chunk));
+  }
+  work(0, std::min(n_used, chunk));
+  for (std::thread& t : pool) t.join();
+  return static_cast<int>(std::count(empty.begin(), empty.end(), static_cast<char>(1)));
+}
+
+}  // namespace
+
+PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
+                                 std::span<const PoseObservation> observations,
+                                 const Rigid3d& nominal_cam_from_sensor, const PoseOptions& options,
+                                 const PoseScene& scene) {
+  const auto start = std::chrono::steady_clock::now();
+  options.Check();
+  CheckObservations(observations, options, scene);
+  PoseResult result;
+  EstimatePaperPose(camera, observations, nominal_cam_from_sensor, options, &result);
+  const std::vector<PoseObservation> used = ChooseObservations(observations, options, &result);
   const std::size_t n_used = used.size();
 
   // 3. Refinement over the chosen probes, without offsets.
@@ -365,35 +418,10 @@ PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
     std::vector<Eigen::Vector2d> offsets(n_used, Eigen::Vector2d::Zero());
     for (int round = 0; round < options.bias_rounds; ++round) {
       const Rigid3d pose = fit.cam_from_sensor;
-      const SurfaceMap map =
-          SurfaceMap::Build(camera, pose, *scene.gel, scene.fins, options.surface_map);
-      std::vector<char> empty(n_used, 0);
-      auto work = [&](std::size_t begin, std::size_t end) {
-        for (std::size_t i = begin; i < end; ++i) {
-          const PoseObservation& o = used[i];
-          const ProbeRender pr = RenderProbe(map, camera, pose * o.ball_center_sensor,
-                                             options.ball_radius_mm, options.render);
-          if (pr.contact_pixels == 0) {
-            offsets[i].setZero();
-            empty[i] = 1;
-            continue;
-          }
-          offsets[i] = HullCentroid(pr) - camera.ProjectUnchecked(pose * o.contact_point_sensor);
-        }
-      };
-      const std::size_t threads =
-          std::min<std::size_t>(static_cast<std::size_t>(options.threads), n_used);
-      std::vector<std::thread> pool;
-      const std::size_t chunk = (n_used + threads - 1) / threads;
-      for (std::size_t t = 1; t < threads; ++t) {
-        pool.emplace_back(work, std::min(n_used, t * chunk), std::min(n_used, (t + 1) * chunk));
-      }
-      work(0, std::min(n_used, chunk));
-      for (std::thread& t : pool) t.join();
+      const int empty = BiasOffsets(camera, pose, used, options, scene, &offsets);
       fit = RefineCamFromSensor(camera, used, offsets, pose, options);
       result.bias_rounds = round + 1;
-      result.no_rendered_contact =
-          static_cast<int>(std::count(empty.begin(), empty.end(), static_cast<char>(1)));
+      result.no_rendered_contact = empty;
       double sum = 0.0;
       for (const Eigen::Vector2d& b : offsets) sum += b.norm();
       result.mean_bias_px = sum / static_cast<double>(n_used);

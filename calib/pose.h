@@ -84,6 +84,25 @@ struct PoseOptions {
   std::uint64_t seed = 1;         // draws the paper's probes
   int threads = 2;                // rendering the imprints (1..64)
   // Throws std::invalid_argument naming the field and its value.
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("ransac_probes", self.ransac_probes);
+    visit("ransac_threshold_px", self.ransac_threshold_px);
+    visit("ransac_iterations", self.ransac_iterations);
+    visit("max_iterations", self.max_iterations);
+    visit("huber_px", self.huber_px);
+    visit("outlier_px", self.outlier_px);
+    visit("max_view_angle_deg", self.max_view_angle_deg);
+    visit("min_view_fraction", self.min_view_fraction);
+    visit("min_observations", self.min_observations);
+    visit("model_bias", self.model_bias);
+    visit("bias_rounds", self.bias_rounds);
+    visit("ball_radius_mm", self.ball_radius_mm);
+    visit("render", self.render);
+    visit("surface_map", self.surface_map);
+    visit("seed", self.seed);
+    visit("threads", self.threads);
+  }
   void Check() const;
 };
 

@@ -28,6 +28,11 @@ struct ProbeRenderOptions {
   // Slopes are clamped to tan(max_slope_deg) in magnitude (the normal turned at most this far
   // from n0); (0, 90).
   double max_slope_deg = 80.0;
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("margin_px", self.margin_px);
+    visit("max_slope_deg", self.max_slope_deg);
+  }
   void Check() const;  // throws std::invalid_argument naming the field and value
 };
 

@@ -12,6 +12,8 @@
 #include <string>
 #include <thread>
 
+#include "base/field_error.h"
+
 namespace gs360 {
 namespace {
 
@@ -335,10 +337,6 @@ double EvaluateLossWithPool(Pool& pool, const Mlp& mlp, const Eigen::MatrixXf& x
   return total / (static_cast<double>(n) * static_cast<double>(y.rows()));
 }
 
-std::string Field(const char* name, double value) {
-  return std::string("TrainOptions.") + name + " = " + std::to_string(value);
-}
-
 }  // namespace
 
 std::string_view ToString(LearningRateSchedule s) {
@@ -374,39 +372,36 @@ void TrainOptions::Check() const {
   } catch (const std::invalid_argument& e) {
     throw std::invalid_argument(std::string("TrainOptions.fourier: ") + e.what());
   }
-  if (batch_size < 1)
-    throw std::invalid_argument(Field("batch_size", batch_size) + " must be >= 1");
+  if (batch_size < 1) ThrowFieldError("TrainOptions.batch_size", batch_size, "must be >= 1");
   if (!std::isfinite(learning_rate) || learning_rate <= 0.0) {
-    throw std::invalid_argument(Field("learning_rate", learning_rate) + " must be > 0");
+    ThrowFieldError("TrainOptions.learning_rate", learning_rate, "must be > 0");
   }
   if (!(beta1 >= 0.0 && beta1 < 1.0)) {
-    throw std::invalid_argument(Field("beta1", beta1) + " must be in [0, 1)");
+    ThrowFieldError("TrainOptions.beta1", beta1, "must be in [0, 1)");
   }
   if (!(beta2 >= 0.0 && beta2 < 1.0)) {
-    throw std::invalid_argument(Field("beta2", beta2) + " must be in [0, 1)");
+    ThrowFieldError("TrainOptions.beta2", beta2, "must be in [0, 1)");
   }
   if (!std::isfinite(epsilon) || epsilon <= 0.0) {
-    throw std::invalid_argument(Field("epsilon", epsilon) + " must be > 0");
+    ThrowFieldError("TrainOptions.epsilon", epsilon, "must be > 0");
   }
   if (!(min_learning_rate >= 0.0 && min_learning_rate <= learning_rate)) {
-    throw std::invalid_argument(Field("min_learning_rate", min_learning_rate) +
-                                " must be in [0, learning_rate]");
+    ThrowFieldError("TrainOptions.min_learning_rate", min_learning_rate,
+                    "must be in [0, learning_rate]");
   }
   if (!(plateau_factor > 0.0 && plateau_factor < 1.0)) {
-    throw std::invalid_argument(Field("plateau_factor", plateau_factor) + " must be in (0, 1)");
+    ThrowFieldError("TrainOptions.plateau_factor", plateau_factor, "must be in (0, 1)");
   }
   if (plateau_epochs < 1) {
-    throw std::invalid_argument(Field("plateau_epochs", plateau_epochs) + " must be >= 1");
+    ThrowFieldError("TrainOptions.plateau_epochs", plateau_epochs, "must be >= 1");
   }
   if (!(plateau_threshold >= 0.0 && plateau_threshold < 1.0)) {
-    throw std::invalid_argument(Field("plateau_threshold", plateau_threshold) +
-                                " must be in [0, 1)");
+    ThrowFieldError("TrainOptions.plateau_threshold", plateau_threshold, "must be in [0, 1)");
   }
-  if (max_epochs < 1)
-    throw std::invalid_argument(Field("max_epochs", max_epochs) + " must be >= 1");
-  if (patience < 0) throw std::invalid_argument(Field("patience", patience) + " must be >= 0");
+  if (max_epochs < 1) ThrowFieldError("TrainOptions.max_epochs", max_epochs, "must be >= 1");
+  if (patience < 0) ThrowFieldError("TrainOptions.patience", patience, "must be >= 0");
   if (threads < 1 || threads > 256) {
-    throw std::invalid_argument(Field("threads", threads) + " must be in [1, 256]");
+    ThrowFieldError("TrainOptions.threads", threads, "must be in [1, 256]");
   }
   switch (schedule) {
     case LearningRateSchedule::kConstant:
@@ -459,10 +454,10 @@ double EvaluateLoss(const Mlp& mlp, const Eigen::MatrixXf& x, const Eigen::Matri
   return EvaluateLossWithPool(pool, mlp, x, y);
 }
 
-TrainResult Train(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train,
-                  const Eigen::MatrixXf& x_val, const Eigen::MatrixXf& y_val,
-                  const TrainOptions& options, const TrainProgress& progress) {
-  options.Check();
+namespace {
+
+void CheckTrainData(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train,
+                    const Eigen::MatrixXf& x_val, const Eigen::MatrixXf& y_val) {
   CheckData("x_train", x_train, "y_train", y_train);
   CheckData("x_val", x_val, "y_val", y_val);
   if (x_train.rows() < 1 || y_train.rows() < 1) {
@@ -476,95 +471,220 @@ TrainResult Train(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train
                                 std::to_string(x_train.rows()) + ", " +
                                 std::to_string(y_train.rows()) + ")");
   }
-  const auto start = Clock::now();
+}
 
+// The seeded initial network, with the training set's normalisation.
+Mlp MakeNetwork(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train,
+                const TrainOptions& options) {
   std::vector<int> sizes;
   sizes.push_back(static_cast<int>(x_train.rows()));
   sizes.insert(sizes.end(), options.hidden.begin(), options.hidden.end());
   sizes.push_back(static_cast<int>(y_train.rows()));
-  const int num_layers = static_cast<int>(sizes.size()) - 1;
-
-  TrainResult result;
   if (options.fourier.inputs > sizes.front()) {
     throw std::invalid_argument(
         "Train: TrainOptions.fourier.inputs = " + std::to_string(options.fourier.inputs) +
         " but the data has " + std::to_string(sizes.front()) + " features");
   }
-  result.mlp = Mlp(sizes, options.activation, options.seed, options.fourier);
-  Mlp& mlp = result.mlp;
-  sizes = LayerSizes(mlp);
-  {
-    Eigen::VectorXf mean, scale;
-    RowStats(x_train, mean, scale);
-    mlp.SetInputNormalization(mean, scale);
-    RowStats(y_train, mean, scale);
-    mlp.SetOutputNormalization(mean, scale);
+  Mlp mlp(sizes, options.activation, options.seed, options.fourier);
+  Eigen::VectorXf mean, scale;
+  RowStats(x_train, mean, scale);
+  mlp.SetInputNormalization(mean, scale);
+  RowStats(y_train, mean, scale);
+  mlp.SetOutputNormalization(mean, scale);
+  return mlp;
+}
+
+// Mini-batch Adam over the shuffled training set: each batch is split into one chunk per pool
+// thread, whose gradients are summed in thread order.
+class Trainer {
+ public:
+  Trainer(Mlp& mlp, const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train,
+          const TrainOptions& options)
+      : mlp_(mlp),
+        x_train_(x_train),
+        y_train_(y_train),
+        options_(options),
+        threads_(options.threads),
+        num_layers_(static_cast<int>(mlp.sizes().size()) - 1),
+        n_(x_train.cols()),
+        batch_(std::min<Eigen::Index>(options.batch_size, n_)),
+        perm_(static_cast<std::size_t>(n_)),
+        rng_(options.seed ^ 0xd1b54a32d192ed03ull),
+        pool_(threads_) {
+    const std::vector<int> sizes = LayerSizes(mlp);
+    const Eigen::Index chunk_max = (batch_ + threads_ - 1) / threads_;
+    for (int t = 0; t < threads_; ++t) {
+      spaces_.push_back(MakeWorkspace(sizes, mlp.input_size(), options.activation, chunk_max));
+    }
+    for (int k = 0; k < num_layers_; ++k) {
+      m_w_.push_back(Eigen::MatrixXf::Zero(sizes[k + 1], sizes[k]));
+      v_w_.push_back(Eigen::MatrixXf::Zero(sizes[k + 1], sizes[k]));
+      m_b_.push_back(Eigen::VectorXf::Zero(sizes[k + 1]));
+      v_b_.push_back(Eigen::VectorXf::Zero(sizes[k + 1]));
+    }
+    for (std::size_t i = 0; i < perm_.size(); ++i) perm_[i] = static_cast<std::uint32_t>(i);
   }
-  const int threads = options.threads;
-  const Eigen::Index n = x_train.cols();
-  const Eigen::Index batch = std::min<Eigen::Index>(options.batch_size, n);
-  const Eigen::Index chunk_max = (batch + threads - 1) / threads;
-  const Activation activation = options.activation;
 
-  std::vector<Workspace> spaces;
-  for (int t = 0; t < threads; ++t) {
-    spaces.push_back(MakeWorkspace(sizes, mlp.input_size(), activation, chunk_max));
-  }
-  // Adam moments.
-  std::vector<Eigen::MatrixXf> m_w, v_w;
-  std::vector<Eigen::VectorXf> m_b, v_b;
-  for (int k = 0; k < num_layers; ++k) {
-    m_w.push_back(Eigen::MatrixXf::Zero(sizes[k + 1], sizes[k]));
-    v_w.push_back(Eigen::MatrixXf::Zero(sizes[k + 1], sizes[k]));
-    m_b.push_back(Eigen::VectorXf::Zero(sizes[k + 1]));
-    v_b.push_back(Eigen::VectorXf::Zero(sizes[k + 1]));
+  Pool& pool() { return pool_; }
+
+  // One pass over the reshuffled training set at learning rate `lr`; returns the mean loss.
+  double Epoch(double lr) {
+    Shuffle(perm_, rng_);
+    double loss_sum = 0.0;
+    for (batch_begin_ = 0; batch_begin_ < n_; batch_begin_ += batch_) {
+      batch_size_ = std::min(batch_, n_ - batch_begin_);
+      pool_.Run(chunk_fn_);
+      AdamStep(lr);
+      for (const Workspace& ws : spaces_) loss_sum += ws.loss_sum;
+    }
+    return loss_sum / (static_cast<double>(n_) * static_cast<double>(y_train_.rows()));
   }
 
-  std::vector<std::uint32_t> perm(static_cast<std::size_t>(n));
-  for (std::size_t i = 0; i < perm.size(); ++i) perm[i] = static_cast<std::uint32_t>(i);
-  Rng rng(options.seed ^ 0xd1b54a32d192ed03ull);
-
-  Pool pool(threads);
-  // Shared per-batch state read by the workers.
-  Eigen::Index batch_begin = 0;
-  Eigen::Index batch_size = 0;
-
-  const auto chunk_job = [&](int t) {
-    Workspace& ws = spaces[static_cast<std::size_t>(t)];
-    const Eigen::Index c_begin = batch_size * t / threads;
-    const Eigen::Index m = batch_size * (t + 1) / threads - c_begin;
+ private:
+  // Thread t's chunk of the current batch: its loss and gradient in spaces_[t].
+  void ChunkJob(int t) {
+    Workspace& ws = spaces_[static_cast<std::size_t>(t)];
+    const Eigen::Index c_begin = batch_size_ * t / threads_;
+    const Eigen::Index m = batch_size_ * (t + 1) / threads_ - c_begin;
     ws.loss_sum = 0.0;
     if (m == 0) {
-      for (int k = 0; k < num_layers; ++k) {
+      for (int k = 0; k < num_layers_; ++k) {
         ws.grad_w[k].setZero();
         ws.grad_b[k].setZero();
       }
       return;
     }
-    const std::uint32_t* idx = perm.data() + batch_begin + c_begin;
+    const std::uint32_t* idx = perm_.data() + batch_begin_ + c_begin;
     for (Eigen::Index j = 0; j < m; ++j) {
-      ws.x.col(j) = x_train.col(idx[j]);
-      ws.y.col(j) = y_train.col(idx[j]);
+      ws.x.col(j) = x_train_.col(idx[j]);
+      ws.y.col(j) = y_train_.col(idx[j]);
     }
-    ChunkGradient(mlp, ws, m, batch_size);
-  };
-  const std::function<void(int)> chunk_fn = chunk_job;
+    ChunkGradient(mlp_, ws, m, batch_size_);
+  }
 
-  const auto b1 = static_cast<float>(options.beta1);
-  const auto b2 = static_cast<float>(options.beta2);
-  const auto eps = static_cast<float>(options.epsilon);
-  double b1_power = 1.0, b2_power = 1.0;
-  Eigen::MatrixXf gw;
-  Eigen::VectorXf gb;
+  // The chunks' gradients summed, then one Adam update of every layer.
+  void AdamStep(double lr) {
+    b1_power_ *= options_.beta1;
+    b2_power_ *= options_.beta2;
+    const auto step = static_cast<float>(lr * std::sqrt(1.0 - b2_power_) / (1.0 - b1_power_));
+    auto& layers = mlp_.layers();
+    for (int k = 0; k < num_layers_; ++k) {
+      gw_ = spaces_[0].grad_w[k];
+      gb_ = spaces_[0].grad_b[k];
+      for (int t = 1; t < threads_; ++t) {
+        gw_ += spaces_[static_cast<std::size_t>(t)].grad_w[k];
+        gb_ += spaces_[static_cast<std::size_t>(t)].grad_b[k];
+      }
+      m_w_[k] = b1_ * m_w_[k] + (1.0f - b1_) * gw_;
+      v_w_[k] = b2_ * v_w_[k] + (1.0f - b2_) * gw_.cwiseAbs2();
+      layers[k].weight.array() -= step * m_w_[k].array() / (v_w_[k].array().sqrt() + eps_);
+      m_b_[k] = b1_ * m_b_[k] + (1.0f - b1_) * gb_;
+      v_b_[k] = b2_ * v_b_[k] + (1.0f - b2_) * gb_.cwiseAbs2();
+      layers[k].bias.array() -= step * m_b_[k].array() / (v_b_[k].array().sqrt() + eps_);
+    }
+  }
 
-  std::vector<MlpLayer> best_layers = mlp.layers();
-  double best_val = std::numeric_limits<double>::infinity();
-  double significant_best = std::numeric_limits<double>::infinity();
-  int significant_epoch = -1;
-  double plateau_best = std::numeric_limits<double>::infinity();
-  int plateau_count = 0;
+  Mlp& mlp_;
+  const Eigen::MatrixXf& x_train_;
+  const Eigen::MatrixXf& y_train_;
+  const TrainOptions& options_;
+  const int threads_;
+  const int num_layers_;
+  const Eigen::Index n_;
+  const Eigen::Index batch_;
+  std::vector<Workspace> spaces_;  // one per thread
+  // Adam moments.
+  std::vector<Eigen::MatrixXf> m_w_, v_w_;
+  std::vector<Eigen::VectorXf> m_b_, v_b_;
+  const float b1_ = static_cast<float>(options_.beta1);
+  const float b2_ = static_cast<float>(options_.beta2);
+  const float eps_ = static_cast<float>(options_.epsilon);
+  double b1_power_ = 1.0, b2_power_ = 1.0;
+  Eigen::MatrixXf gw_;
+  Eigen::VectorXf gb_;
+  std::vector<std::uint32_t> perm_;
+  Rng rng_;
+  Pool pool_;
+  // The current batch, read by the workers.
+  Eigen::Index batch_begin_ = 0;
+  Eigen::Index batch_size_ = 0;
+  const std::function<void(int)> chunk_fn_ = [this](int t) { ChunkJob(t); };
+};
+
+// Keeps the best epoch's weights and runs the plateau schedule and early stopping.
+class EpochTracker {
+ public:
+  EpochTracker(const Mlp& mlp, const TrainOptions& options)
+      : options_(options), best_layers_(mlp.layers()) {}
+
+  const std::vector<MlpLayer>& best_layers() const { return best_layers_; }
+  double best_val() const { return best_val_; }
+
+  // After epoch `epoch`: updates the best weights, *result's best epoch and *lr; returns false
+  // when the training stops (early stopping, or a non-finite loss after a finite epoch). Throws
+  // std::runtime_error when the very first losses are non-finite.
+  bool Continue(int epoch, double train_loss, double val_loss, const Mlp& mlp, double* lr,
+                TrainResult* result) {
+    if (!std::isfinite(train_loss) || !std::isfinite(val_loss)) {
+      // Diverged: keep the best weights so far.
+      if (result->best_epoch < 0) {
+        throw std::runtime_error("Train: the loss became non-finite in epoch " +
+                                 std::to_string(epoch) + " (learning_rate " + std::to_string(*lr) +
+                                 " too high?)");
+      }
+      result->stopped_early = true;
+      return false;
+    }
+    if (val_loss < best_val_) {
+      best_val_ = val_loss;
+      result->best_epoch = epoch;
+      best_layers_ = mlp.layers();
+    }
+    if (val_loss < significant_best_ * (1.0 - options_.plateau_threshold)) {
+      significant_best_ = val_loss;
+      significant_epoch_ = epoch;
+    }
+    if (options_.schedule == LearningRateSchedule::kPlateau) {
+      if (val_loss < plateau_best_ * (1.0 - options_.plateau_threshold)) {
+        plateau_best_ = val_loss;
+        plateau_count_ = 0;
+      } else if (++plateau_count_ >= options_.plateau_epochs) {
+        *lr = std::max(*lr * options_.plateau_factor, options_.min_learning_rate);
+        plateau_count_ = 0;
+      }
+    }
+    if (options_.patience > 0 && epoch - significant_epoch_ >= options_.patience &&
+        epoch + 1 < options_.max_epochs) {
+      result->stopped_early = true;
+      return false;
+    }
+    return true;
+  }
+
+ private:
+  const TrainOptions& options_;
+  std::vector<MlpLayer> best_layers_;
+  double best_val_ = std::numeric_limits<double>::infinity();
+  double significant_best_ = std::numeric_limits<double>::infinity();
+  int significant_epoch_ = -1;
+  double plateau_best_ = std::numeric_limits<double>::infinity();
+  int plateau_count_ = 0;
+};
+
+}  // namespace
+
+TrainResult Train(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train,
+                  const Eigen::MatrixXf& x_val, const Eigen::MatrixXf& y_val,
+                  const TrainOptions& options, const TrainProgress& progress) {
+  options.Check();
+  CheckTrainData(x_train, y_train, x_val, y_val);
+  const auto start = Clock::now();
+  TrainResult result;
+  result.mlp = MakeNetwork(x_train, y_train, options);
+  Mlp& mlp = result.mlp;
+  Trainer trainer(mlp, x_train, y_train, options);
+  EpochTracker tracker(mlp, options);
   double lr = options.learning_rate;
-
   for (int epoch = 0; epoch < options.max_epochs; ++epoch) {
     const auto epoch_start = Clock::now();
     if (options.schedule == LearningRateSchedule::kCosine) {
@@ -572,75 +692,16 @@ TrainResult Train(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train
            0.5 * (options.learning_rate - options.min_learning_rate) *
                (1.0 + std::cos(std::numbers::pi * epoch / options.max_epochs));
     }
-    Shuffle(perm, rng);
-    double loss_sum = 0.0;
-    for (batch_begin = 0; batch_begin < n; batch_begin += batch) {
-      batch_size = std::min(batch, n - batch_begin);
-      pool.Run(chunk_fn);
-      b1_power *= options.beta1;
-      b2_power *= options.beta2;
-      const auto step = static_cast<float>(lr * std::sqrt(1.0 - b2_power) / (1.0 - b1_power));
-      auto& layers = mlp.layers();
-      for (int k = 0; k < num_layers; ++k) {
-        gw = spaces[0].grad_w[k];
-        gb = spaces[0].grad_b[k];
-        for (int t = 1; t < threads; ++t) {
-          gw += spaces[static_cast<std::size_t>(t)].grad_w[k];
-          gb += spaces[static_cast<std::size_t>(t)].grad_b[k];
-        }
-        m_w[k] = b1 * m_w[k] + (1.0f - b1) * gw;
-        v_w[k] = b2 * v_w[k] + (1.0f - b2) * gw.cwiseAbs2();
-        layers[k].weight.array() -= step * m_w[k].array() / (v_w[k].array().sqrt() + eps);
-        m_b[k] = b1 * m_b[k] + (1.0f - b1) * gb;
-        v_b[k] = b2 * v_b[k] + (1.0f - b2) * gb.cwiseAbs2();
-        layers[k].bias.array() -= step * m_b[k].array() / (v_b[k].array().sqrt() + eps);
-      }
-      for (const Workspace& ws : spaces) loss_sum += ws.loss_sum;
-    }
-    const double train_loss =
-        loss_sum / (static_cast<double>(n) * static_cast<double>(y_train.rows()));
+    const double train_loss = trainer.Epoch(lr);
     const double val_loss = std::isfinite(train_loss)
-                                ? EvaluateLossWithPool(pool, mlp, x_val, y_val)
+                                ? EvaluateLossWithPool(trainer.pool(), mlp, x_val, y_val)
                                 : std::numeric_limits<double>::quiet_NaN();
     result.curve.push_back({epoch, train_loss, val_loss, SecondsSince(epoch_start), lr});
     if (progress) progress(epoch, train_loss, val_loss);
-
-    if (!std::isfinite(train_loss) || !std::isfinite(val_loss)) {
-      // Diverged: keep the best weights so far.
-      if (result.best_epoch < 0) {
-        throw std::runtime_error("Train: the loss became non-finite in epoch " +
-                                 std::to_string(epoch) + " (learning_rate " + std::to_string(lr) +
-                                 " too high?)");
-      }
-      result.stopped_early = true;
-      break;
-    }
-    if (val_loss < best_val) {
-      best_val = val_loss;
-      result.best_epoch = epoch;
-      best_layers = mlp.layers();
-    }
-    if (val_loss < significant_best * (1.0 - options.plateau_threshold)) {
-      significant_best = val_loss;
-      significant_epoch = epoch;
-    }
-    if (options.schedule == LearningRateSchedule::kPlateau) {
-      if (val_loss < plateau_best * (1.0 - options.plateau_threshold)) {
-        plateau_best = val_loss;
-        plateau_count = 0;
-      } else if (++plateau_count >= options.plateau_epochs) {
-        lr = std::max(lr * options.plateau_factor, options.min_learning_rate);
-        plateau_count = 0;
-      }
-    }
-    if (options.patience > 0 && epoch - significant_epoch >= options.patience &&
-        epoch + 1 < options.max_epochs) {
-      result.stopped_early = true;
-      break;
-    }
+    if (!tracker.Continue(epoch, train_loss, val_loss, mlp, &lr, &result)) break;
   }
-  mlp.layers() = best_layers;
-  result.best_val_loss = best_val;
+  mlp.layers() = tracker.best_layers();
+  result.best_val_loss = tracker.best_val();
   result.seconds = SecondsSince(start);
   return result;
 }

@@ -82,6 +82,26 @@ struct TrainOptions {
   int threads = 2;  // 1..256
 
   // Throws std::invalid_argument naming the field and its value.
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("hidden", self.hidden);
+    visit("activation", self.activation);
+    visit("fourier", self.fourier);
+    visit("batch_size", self.batch_size);
+    visit("learning_rate", self.learning_rate);
+    visit("beta1", self.beta1);
+    visit("beta2", self.beta2);
+    visit("epsilon", self.epsilon);
+    visit("schedule", self.schedule);
+    visit("min_learning_rate", self.min_learning_rate);
+    visit("plateau_factor", self.plateau_factor);
+    visit("plateau_epochs", self.plateau_epochs);
+    visit("plateau_threshold", self.plateau_threshold);
+    visit("max_epochs", self.max_epochs);
+    visit("patience", self.patience);
+    visit("seed", self.seed);
+    visit("threads", self.threads);
+  }
   void Check() const;
 };
 

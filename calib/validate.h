@@ -61,6 +61,13 @@ struct ValidationOptions {
   double fin_near_mm = 2.0;  // contact point this close to a fin plane = near the fins
   int examples = 4;          // example reconstructions kept for the report
   int threads = 2;
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("max_probes", self.max_probes);
+    visit("fin_near_mm", self.fin_near_mm);
+    visit("examples", self.examples);
+    visit("threads", self.threads);
+  }
   void Check() const;
 };
 

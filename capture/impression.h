@@ -42,8 +42,8 @@ std::optional<Impression> FindImpression(const cv::Mat& press, const cv::Mat& re
 // colour difference (DifferenceMagnitude, blur_sigma_px) within `radius_px` of it, over the 99th
 // percentile of the difference over the frame's pixels (where `mask` allows). A press near
 // there gives a local bump well above 1; a frame whose change is only noise and slow
-// illumination drift gives about 1 (docs/running.md gives the figures measured on the virtual
-// rig). Returns 0 when the window lies outside the image. Throws as DifferenceMagnitude.
+// illumination drift gives about 1 (docs/running.md has the figures on the virtual rig). Returns 0
+// when the window lies outside the image. Throws as DifferenceMagnitude.
 double ImpressionContrast(const cv::Mat& press, const cv::Mat& reference,
                           const Eigen::Vector2d& expected_px, double radius_px,
                           double blur_sigma_px = 2.0, const cv::Mat& mask = cv::Mat());

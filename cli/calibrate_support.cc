@@ -2,6 +2,7 @@
 
 #include <chrono>
 
+#include "base/format.h"
 #include "calib/report.h"
 #include "cli/progress.h"
 
@@ -22,6 +23,12 @@ CalibrationResult CalibrateAndPrint(RunDatabase& db, std::int64_t run_id,
   for (const StageReport& s : result.stages) {
     std::fprintf(out, "  %-12s %s %8.2f s  %s\n", s.stage.c_str(), s.cached ? "cached" : "ran   ",
                  s.seconds, s.input_hash.c_str());
+  }
+  if (result.model_path.empty()) {
+    std::fprintf(out, "\ncalibration stopped after %s in %s (no model exported)\n",
+                 result.stages.empty() ? "no stage" : result.stages.back().stage.c_str(),
+                 FormatDuration(result.seconds).c_str());
+    return result;
   }
   std::fprintf(out, "\n%s", FormatValidationTable(result.validation).c_str());
   std::fprintf(out, "\ncalibration finished in %s\n  model:  %s\n  onnx:   %s\n  report: %s\n",

@@ -48,6 +48,11 @@ void AddOptions(CLI::App* cmd, Json* r) {
                    "Re-run this stage and every later one even if cached (intrinsics, "
                    "impressions, pose, surface_map, render, dataset, train, validate, export)",
                    r);
+  Key<std::string>(cmd, "--to", "to", "Stop after this stage (the later ones are not run)", r);
+  Key<std::string>(cmd, "--only", "only",
+                   "Run only this stage (again), its inputs from the cache; an input that is "
+                   "not cached is an error naming the --to that computes it",
+                   r);
   Key<std::string>(cmd, "--name", "model_name", "Model name (default: run-<id>)", r);
   Key<std::string>(cmd, "--model-version", "model_version",
                    "Model version (default: the training's hash)", r);

@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <fstream>
 
+#include "base/format.h"
 #include "calib/report.h"
 #include "cli/calibrate_support.h"
 #include "cli/commands.h"

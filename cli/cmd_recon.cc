@@ -17,6 +17,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "base/format.h"
 #include "capture/frame_source.h"
 #include "cli/commands.h"
 #include "cli/progress.h"

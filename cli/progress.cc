@@ -4,21 +4,9 @@
 
 #include <cmath>
 
-namespace gs360::cli {
+#include "base/format.h"
 
-std::string FormatDuration(double s) {
-  if (!(s >= 0.0) || !std::isfinite(s)) return "--";
-  const long long t = std::llround(s);
-  char buf[32];
-  if (t >= 3600) {
-    std::snprintf(buf, sizeof buf, "%lldh %02lldm", t / 3600, (t / 60) % 60);
-  } else if (t >= 60) {
-    std::snprintf(buf, sizeof buf, "%lldm %02llds", t / 60, t % 60);
-  } else {
-    std::snprintf(buf, sizeof buf, "%llds", t);
-  }
-  return buf;
-}
+namespace gs360::cli {
 
 ProgressPrinter::ProgressPrinter(std::FILE* out, double plain_interval_s)
     : out_(out), tty_(::isatty(::fileno(out)) != 0), plain_interval_s_(plain_interval_s) {}

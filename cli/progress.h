@@ -10,8 +10,6 @@
 
 namespace gs360::cli {
 
-std::string FormatDuration(double seconds);  // "1h 02m", "3m 20s", "12s"
-
 class ProgressPrinter {
  public:
   explicit ProgressPrinter(std::FILE* out = stderr, double plain_interval_s = 10.0);

@@ -1,5 +1,6 @@
 #include "cli/report.h"
 
+#include "base/format.h"
 #include "cli/progress.h"
 
 namespace gs360::cli {

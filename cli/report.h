@@ -3,7 +3,7 @@
 
 #include <cstdio>
 
-#include "gcode/plan.h"
+#include "plan/plan.h"
 #include "storage/run_database.h"
 
 namespace gs360::cli {

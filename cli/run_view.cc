@@ -4,6 +4,7 @@
 #include <string>
 #include <thread>
 
+#include "base/format.h"
 #include "calib/report.h"
 #include "cli/progress.h"
 #include "daemon/run_engine.h"
@@ -140,7 +141,11 @@ Json WatchCalibration(DaemonClient& client, std::int64_t run_id, std::FILE* out)
     std::fprintf(out, "  %-12s %-8s %8.2f s\n", Text(s, "name").c_str(), Text(s, "state").c_str(),
                  Number(s, "seconds", 0.0));
   }
-  if (Text(view, "state") == "done") {
+  const bool validated =
+      view.contains("validation") && view["validation"].is_object() && !view["validation"].empty();
+  if (Text(view, "state") == "done" && !validated) {
+    std::fprintf(out, "\ncalibration done up to the stage asked for; no model exported\n");
+  } else if (Text(view, "state") == "done") {
     std::fprintf(out, "\n%s", FormatValidationTable(view["validation"]).c_str());
     std::fprintf(out, "\ntargets:\n");
     for (const auto& t : view.value("targets", Json::array())) {

@@ -10,8 +10,8 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "base/hash.h"
 #include "base/json_reader.h"
-#include "geometry/hash.h"
 #include "sim/checkerboard.h"
 #include "sim/ground_truth.h"
 

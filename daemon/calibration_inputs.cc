@@ -6,7 +6,7 @@
 #include <nlohmann/json.hpp>
 
 #include "base/json_reader.h"
-#include "gcode/plan.h"
+#include "plan/plan.h"
 
 namespace gs360 {
 

@@ -38,7 +38,7 @@ void WriteFileAtomically(const std::filesystem::path& path, const std::string& t
 struct CalibrationJobs::Job {
   struct Stage {
     std::string name;
-    std::string state = "pending";  // pending, running, done, cached, failed
+    std::string state = "pending";  // pending, running, done, cached, failed, skipped
     double seconds = 0.0;
     std::string message;  // the stage's latest log line
   };
@@ -55,13 +55,15 @@ struct CalibrationJobs::Job {
 };
 
 void ReadCalibrationRequest(JsonReader& r, CalibrationOptions& o) {
-  r.Get("from", o.from_stage);
-  if (!o.from_stage.empty()) {
+  // Stage selection: names checked here so that the error names the request's field.
+  for (const auto& [field, value] : {std::pair{"from", &o.from_stage}, std::pair{"to", &o.to_stage},
+                                     std::pair{"only", &o.only_stage}}) {
+    r.Get(field, *value);
     const auto& stages = CalibrationStages();
-    if (std::find(stages.begin(), stages.end(), o.from_stage) == stages.end()) {
+    if (!value->empty() && std::find(stages.begin(), stages.end(), *value) == stages.end()) {
       std::string names;
       for (const auto& s : stages) names += (names.empty() ? "" : ", ") + s;
-      r.Fail("from", "unknown stage \"" + o.from_stage + "\" (stages: " + names + ")");
+      r.Fail(field, "unknown stage \"" + *value + "\" (stages: " + names + ")");
     }
   }
   r.Get("max_epochs", o.train.max_epochs);
@@ -209,6 +211,12 @@ void CalibrationJobs::Execute(std::shared_ptr<Job> job, CalibrationInputs inputs
       }
     }
     if (state == "done") {
+      // Stages after `to` (or around `only`) did not run.
+      for (auto& s : job->stages) {
+        if (s.state == "pending") s.state = "skipped";
+      }
+    }
+    if (state == "done" && !result.model_path.empty()) {
       job->validation = result.validation;
       job->files = {{"model", result.model_path.string()},
                     {"onnx", result.onnx_path.string()},

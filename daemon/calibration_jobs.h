@@ -27,7 +27,7 @@ namespace gs360 {
 class JsonReader;
 
 // The options a calibration request may set (docs/api.md, `gs360 calibrate --help`), read into
-// `options`: from, max_epochs, hidden, samples_per_probe, max_samples, edge_exclusion,
+// `options`: from, to, only, max_epochs, hidden, samples_per_probe, max_samples, edge_exclusion,
 // integration, hf_min_view_angle, fourier, context_sigmas, smooth_sigma, max_validation_probes,
 // model_name, model_version. Throws ConfigError naming the field.
 void ReadCalibrationRequest(JsonReader& reader, CalibrationOptions& options);

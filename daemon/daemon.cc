@@ -8,11 +8,11 @@
 
 #include <spdlog/spdlog.h>
 
+#include "base/hash.h"
 #include "base/json_reader.h"
 #include "daemon/calibration_inputs.h"
 #include "daemon/calibration_jobs.h"
 #include "daemon/daemon_util.h"
-#include "geometry/hash.h"
 #include "geometry/mesh.h"
 
 namespace gs360 {

@@ -9,7 +9,7 @@
 
 #include "capture/capture_press.h"
 #include "capture/frame_source.h"
-#include "gcode/plan.h"
+#include "plan/plan.h"
 #include "rig/rig_config.h"
 
 namespace gs360 {

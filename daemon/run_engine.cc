@@ -1,4 +1,5 @@
 #include "daemon/run_engine.h"
+#include "base/format.h"
 #include "daemon/run_session.h"
 
 #include <algorithm>
@@ -13,13 +14,13 @@
 #include <spdlog/spdlog.h>
 #include <nlohmann/json.hpp>
 
+#include "base/hash.h"
 #include "base/json_reader.h"
 #include "capture/capture_press.h"
 #include "capture/frame_source.h"
 #include "capture/impression.h"
 #include "gcode/grbl_client.h"
 #include "gcode/probe_program.h"
-#include "geometry/hash.h"
 
 namespace gs360 {
 namespace {

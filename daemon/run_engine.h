@@ -56,7 +56,7 @@
 
 #include "daemon/run_config.h"
 #include "daemon/safety.h"
-#include "gcode/plan.h"
+#include "plan/plan.h"
 #include "storage/run_database.h"
 
 namespace gs360 {

@@ -9,6 +9,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include "base/format.h"
 #include "capture/impression.h"
 #include "daemon/run_session.h"
 

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <sstream>
 
+#include "base/format.h"
 #include "base/json_reader.h"
 #include "gcode/grbl_client.h"
 #include "gcode/probe_program.h"

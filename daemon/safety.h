@@ -18,7 +18,7 @@
 #include <string>
 #include <string_view>
 
-#include "gcode/plan.h"
+#include "plan/plan.h"
 
 namespace gs360 {
 

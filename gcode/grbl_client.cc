@@ -7,6 +7,8 @@
 
 #include <spdlog/spdlog.h>
 
+#include "base/format.h"
+
 namespace gs360 {
 
 namespace {
@@ -1087,16 +1089,6 @@ void PressMotion::Check() const {
     throw std::invalid_argument("PressMotion.retract_feed_mm_min must be >= 0 (0 = rapid), got " +
                                 std::to_string(retract_feed_mm_min));
   }
-}
-
-std::string FormatFixed(double value, int decimals) {
-  char buf[64];
-  const auto [ptr, ec] =
-      std::to_chars(buf, buf + sizeof(buf), value, std::chars_format::fixed, decimals);
-  if (ec != std::errc()) throw std::invalid_argument("FormatFixed: value out of range");
-  std::string s(buf, ptr);
-  if (s[0] == '-' && s.find_first_not_of("-0.") == std::string::npos) s.erase(0, 1);
-  return s;
 }
 
 PressGcode MakePressGcode(const PressMotion& m) {

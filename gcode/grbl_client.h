@@ -357,8 +357,6 @@ struct PressGcode {
   std::string retract;   // "G53 G0 X.. Y.. Z.." back to the approach point; send after the frame
 };
 
-// Fixed decimals (3 for mm), locale-independent (std::to_chars); "-0.000" is written "0.000".
-std::string FormatFixed(double value, int decimals);
 PressGcode MakePressGcode(const PressMotion& motion);
 
 }  // namespace gs360

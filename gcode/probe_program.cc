@@ -2,6 +2,7 @@
 
 #include <stdexcept>
 
+#include "base/format.h"
 #include "gcode/grbl_client.h"
 
 namespace gs360 {

@@ -3,7 +3,8 @@
 //
 // Every motion line targets machine coordinates (G53, GRBL MPos) so that a work offset left in
 // the controller (G54, G92) cannot shift a press; coordinates have 3 decimals, feeds 1, dwells 3,
-// formatted locale-independently (gcode/grbl_client.h: FormatFixed, MakePressGcode). A probe:
+// formatted locale-independently (base/format.h FormatFixed, gcode/grbl_client.h MakePressGcode).
+// A probe:
 //
 //   reference (only when probe.reference_before):
 //     G53 G0 <travel waypoints>...            rapid, pipelined
@@ -24,7 +25,7 @@
 #include <string>
 #include <vector>
 
-#include "gcode/plan.h"
+#include "plan/plan.h"
 
 namespace gs360 {
 

@@ -571,62 +571,14 @@ Bvh::Bvh(const TriangleMesh& mesh, const BvhOptions& options) : mesh_(mesh) {
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
-template <bool kAnyHit>
-Bvh::HitSlot Bvh::Traverse(const Ray& ray, double t_min, double t_max, double* best_t,
-                           double* best_b1, double* best_b2) const {
-  HitSlot best_slot;
-  if (lines_.empty()) return best_slot;
-  const Eigen::Vector3d& d = ray.direction;
-  if (!ray.origin.allFinite() || !d.allFinite() || d.squaredNorm() == 0.0) return best_slot;
-  if (!(t_max >= t_min)) return best_slot;
-  const WatertightRay wray(ray);
-  const unsigned char* const base = lines_.data()->bytes;
-
-  // Box test in float: slab distances (plane - origin) * (1 / direction).
-  float inv[3];
-  for (int k = 0; k < 3; ++k) {
-    double dk = d[k];
-    if (std::abs(dk) < 1e-30) dk = dk < 0.0 ? -1e-30 : 1e-30;
-    inv[k] = static_cast<float>(1.0 / dk);
-  }
-  const F4 ox = Splat(static_cast<float>(ray.origin.x()));
-  const F4 oy = Splat(static_cast<float>(ray.origin.y()));
-  const F4 oz = Splat(static_cast<float>(ray.origin.z()));
-  const F4 ix = Splat(inv[0]), iy = Splat(inv[1]), iz = Splat(inv[2]);
-  // Byte offsets in a Node4 of each axis's near and far planes: lo where the direction is
-  // positive, else hi (the same distances as min / max of both, without computing both).
-  std::size_t near_at[3], far_at[3];
-  for (int k = 0; k < 3; ++k) {
-    const std::size_t lo_at = offsetof(Node4, lo_x) + 16 * k;
-    const std::size_t hi_at = offsetof(Node4, hi_x) + 16 * k;
-    near_at[k] = inv[k] >= 0.0f ? lo_at : hi_at;
-    far_at[k] = inv[k] >= 0.0f ? hi_at : lo_at;
-  }
+// Traverse's per-ray constants and tests, built once per ray. Box test in float: slab distances
+// (plane - origin) * (1 / direction), over an interval slightly wider than [t_min, closest hit].
+// Triangle test: the watertight test (Woop, Benthin, Wald 2013) in double. A leaf's vertices are
+// translated, permuted and sheared once (two at a time), then each triangle's edge functions are
+// formed from them with exactly the operations of the scalar test.
+struct Bvh::RayTests {
   // Conservative float interval: slightly wider than [t_min, best].
-  constexpr float kGrow = 1.0f + 4.0f * std::numeric_limits<float>::epsilon();
-  float tmin_f = static_cast<float>(t_min);
-  tmin_f = tmin_f > 0.0f ? tmin_f / kGrow : tmin_f * kGrow;
-  const F4 tmin4 = Splat(tmin_f);
-  const F4 grow4 = Splat(kGrow);
-  auto to_tmax_f = [](double t) {
-    return t >= static_cast<double>(std::numeric_limits<float>::max())
-               ? std::numeric_limits<float>::infinity()
-               : static_cast<float>(t) * kGrow;
-  };
-
-  // Triangle test: the watertight test (Woop, Benthin, Wald 2013) in double. A leaf's vertices
-  // are translated, permuted and sheared once (two at a time), then each triangle's edge
-  // functions are formed from them with exactly the operations of the scalar test.
-  const int kx = wray.kx, ky = wray.ky, kz = wray.kz;
-  const D2 o_x = Splat2(ray.origin[kx]), o_y = Splat2(ray.origin[ky]);
-  const D2 o_z = Splat2(ray.origin[kz]);
-  const D2 sx2 = Splat2(wray.sx), sy2 = Splat2(wray.sy);
-  alignas(16) double sxa[kMaxLeafVertices], sya[kMaxLeafVertices], dza[kMaxLeafVertices];
-
-  double best = t_max;
-  float best_f = to_tmax_f(best);
-  F4 best4 = Splat(best_f);
-  std::int32_t best_triangle = -1;
+  static constexpr float kGrow = 1.0f + 4.0f * std::numeric_limits<float>::epsilon();
 
   // A node or leaf to visit: leaf -> at = its record, count = its triangles; inner -> at = its
   // Node4, count <= 0. t: entry distance along the ray (float, never above the exact one).
@@ -635,110 +587,204 @@ Bvh::HitSlot Bvh::Traverse(const Ray& ray, double t_min, double t_max, double* b
     std::int32_t count;
     float t;
   };
-  Entry stack[kStackSize];
+
+  // The closest hit so far, and the box test's far bound that follows it.
+  struct Closest {
+    explicit Closest(double t_max) : t(t_max), t_f(ToFloatBound(t_max)), t4(Splat(t_f)) {}
+    double t;
+    float t_f;
+    F4 t4;
+    std::int32_t triangle = -1;
+    HitSlot slot;
+  };
+
+  // Scratch for one leaf's translated, permuted and sheared vertices.
+  struct LeafVertices {
+    alignas(16) double sx[kMaxLeafVertices], sy[kMaxLeafVertices], dz[kMaxLeafVertices];
+  };
+
+  static float ToFloatBound(double t) {
+    return t >= static_cast<double>(std::numeric_limits<float>::max())
+               ? std::numeric_limits<float>::infinity()
+               : static_cast<float>(t) * kGrow;
+  }
+
+  RayTests(const Ray& ray, double t_min_in) : wray(ray), t_min(t_min_in) {
+    const Eigen::Vector3d& d = ray.direction;
+    float inv[3];
+    for (int k = 0; k < 3; ++k) {
+      double dk = d[k];
+      if (std::abs(dk) < 1e-30) dk = dk < 0.0 ? -1e-30 : 1e-30;
+      inv[k] = static_cast<float>(1.0 / dk);
+    }
+    ox = Splat(static_cast<float>(ray.origin.x()));
+    oy = Splat(static_cast<float>(ray.origin.y()));
+    oz = Splat(static_cast<float>(ray.origin.z()));
+    ix = Splat(inv[0]), iy = Splat(inv[1]), iz = Splat(inv[2]);
+    // Byte offsets in a Node4 of each axis's near and far planes: lo where the direction is
+    // positive, else hi (the same distances as min / max of both, without computing both).
+    for (int k = 0; k < 3; ++k) {
+      const std::size_t lo_at = offsetof(Node4, lo_x) + 16 * k;
+      const std::size_t hi_at = offsetof(Node4, hi_x) + 16 * k;
+      near_at[k] = inv[k] >= 0.0f ? lo_at : hi_at;
+      far_at[k] = inv[k] >= 0.0f ? hi_at : lo_at;
+    }
+    float tmin_f = static_cast<float>(t_min);
+    tmin_f = tmin_f > 0.0f ? tmin_f / kGrow : tmin_f * kGrow;
+    tmin4 = Splat(tmin_f);
+    grow4 = Splat(kGrow);
+    o_x = Splat2(ray.origin[wray.kx]), o_y = Splat2(ray.origin[wray.ky]);
+    o_z = Splat2(ray.origin[wray.kz]);
+    sx2 = Splat2(wray.sx), sy2 = Splat2(wray.sy);
+  }
+
+  // The children of `node` whose boxes the ray enters before `far`: bit k for child k; *tnear:
+  // the entry distances.
+  unsigned Boxes(const unsigned char* node, F4 far, F4* tnear) const {
+    const F4 t0x = (LoadBytes(node + near_at[0]) - ox) * ix;
+    const F4 t1x = (LoadBytes(node + far_at[0]) - ox) * ix;
+    const F4 t0y = (LoadBytes(node + near_at[1]) - oy) * iy;
+    const F4 t1y = (LoadBytes(node + far_at[1]) - oy) * iy;
+    const F4 t0z = (LoadBytes(node + near_at[2]) - oz) * iz;
+    const F4 t1z = (LoadBytes(node + far_at[2]) - oz) * iz;
+    *tnear = Max(Max(t0x, t0y), Max(t0z, tmin4));
+    const F4 tfar = Min(Min(t1x, t1y), Min(t1z, far)) * grow4;
+    return MoveMask(*tnear <= tfar);
+  }
+
+  // Tests the triangles of the leaf `cur`. Closest hit: updates *closest and writes t and the
+  // barycentrics; returns false. kAnyHit: returns true at the first hit (closest->slot set).
+  template <bool kAnyHit>
+  bool Leaf(const unsigned char* base, const Entry& cur, LeafVertices* lv, Closest* closest,
+            double* best_t, double* best_b1, double* best_b2) const {
+    const unsigned char* leaf = base + 8 * static_cast<std::size_t>(cur.at);
+    const int nt = cur.count;
+    const int m = leaf[0] + (leaf[0] & 1);
+    if constexpr (!kAnyHit) {
+      // Its normals, in case it holds the final hit (they are not part of the block).
+      const unsigned char* nrm = LeafNormals(leaf);
+      for (int byte = 0; byte < 24 * leaf[0]; byte += 64) __builtin_prefetch(nrm + byte);
+    }
+    const unsigned char* px = leaf + 8 + 8 * m * wray.kx;
+    const unsigned char* py = leaf + 8 + 8 * m * wray.ky;
+    const unsigned char* pz = leaf + 8 + 8 * m * wray.kz;
+    double* sxa = lv->sx;
+    double* sya = lv->sy;
+    double* dza = lv->dz;
+    for (int i = 0; i < m; i += 2) {
+      const D2 az = Load2(pz + 8 * i) - o_z;
+      Store2(&sxa[i], (Load2(px + 8 * i) - o_x) - sx2 * az);
+      Store2(&sya[i], (Load2(py + 8 * i) - o_y) - sy2 * az);
+      Store2(&dza[i], az);
+    }
+    const unsigned char* tri = leaf + 8 + 24 * m;
+    const unsigned char* corner = tri + 4 * nt;
+    for (int j = 0; j < nt; ++j) {
+      const int a = corner[3 * j], b = corner[3 * j + 1], c = corner[3 * j + 2];
+      const double u = sxa[c] * sya[b] - sya[c] * sxa[b];
+      const double v = sxa[a] * sya[c] - sya[a] * sxa[c];
+      const double w = sxa[b] * sya[a] - sya[b] * sxa[a];
+      if (((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0))) continue;
+      const double det = u + v + w;
+      if (det == 0.0) continue;
+      const double az = wray.sz * dza[a], bz = wray.sz * dza[b], cz = wray.sz * dza[c];
+      const double t = (u * az + v * bz + w * cz) / det;
+      if (!(t >= t_min && t <= closest->t)) continue;
+      if constexpr (kAnyHit) {
+        closest->slot = HitSlot{cur.at, j};
+        return true;
+      } else {
+        std::int32_t triangle;
+        std::memcpy(&triangle, tri + 4 * j, sizeof(triangle));
+        if (closest->triangle >= 0 && t == closest->t && triangle > closest->triangle) continue;
+        closest->t = t;
+        closest->t_f = ToFloatBound(t);
+        closest->t4 = Splat(closest->t_f);
+        closest->triangle = triangle;
+        closest->slot = HitSlot{cur.at, j};
+        *best_t = t;
+        *best_b1 = v / det;
+        *best_b2 = w / det;
+      }
+    }
+    return false;
+  }
+
+  // Enters the children of `node` set in `hit` (entry distances tnear): returns the nearest and
+  // pushes the others onto stack[*sp...], farthest first. An inner child's block (its node and
+  // leaves) is fetched whole right away; a leaf child is part of this node's block, fetched
+  // already.
+  static Entry Enter(const unsigned char* base, const unsigned char* node, unsigned hit, F4 tnear,
+                     Entry* stack, int* sp) {
+    const Node4& n = *reinterpret_cast<const Node4*>(node);
+    auto enter = [&](int k) -> Entry {
+      const unsigned char* q = base + 8 * static_cast<std::size_t>(n.child[k]);
+      for (int line = 0; line < -n.count[k]; line += 4) {  // (up to 3 lines past its end)
+        __builtin_prefetch(q + 64 * line);
+        __builtin_prefetch(q + 64 * line + 64);
+        __builtin_prefetch(q + 64 * line + 128);
+        __builtin_prefetch(q + 64 * line + 192);
+      }
+      return {n.child[k], n.count[k], tnear[k]};
+    };
+    if ((hit & (hit - 1)) == 0) return enter(__builtin_ctz(hit));  // one child: the common case
+    Entry found[4] = {};
+    int nf = 0;
+    do {
+      found[nf++] = enter(__builtin_ctz(hit));
+      hit &= hit - 1;
+    } while (hit != 0);
+    // Nearest first: sort by entry distance (descending), push all but the nearest.
+    for (int a = 1; a < nf; ++a) {
+      for (int b = a; b > 0 && found[b].t > found[b - 1].t; --b) std::swap(found[b], found[b - 1]);
+    }
+    stack[*sp] = found[0];  // entries past nf - 2 are scratch, overwritten later
+    stack[*sp + 1] = found[1];
+    stack[*sp + 2] = found[2];
+    *sp += nf - 1;
+    return found[nf - 1];
+  }
+
+  const WatertightRay wray;
+  const double t_min;
+  F4 ox, oy, oz, ix, iy, iz, tmin4, grow4;
+  std::size_t near_at[3], far_at[3];
+  D2 o_x, o_y, o_z, sx2, sy2;
+};
+
+template <bool kAnyHit>
+Bvh::HitSlot Bvh::Traverse(const Ray& ray, double t_min, double t_max, double* best_t,
+                           double* best_b1, double* best_b2) const {
+  if (lines_.empty()) return HitSlot();
+  const Eigen::Vector3d& d = ray.direction;
+  if (!ray.origin.allFinite() || !d.allFinite() || d.squaredNorm() == 0.0) return HitSlot();
+  if (!(t_max >= t_min)) return HitSlot();
+  const unsigned char* const base = lines_.data()->bytes;
+  const RayTests tests(ray, t_min);
+  RayTests::Closest closest(t_max);
+  RayTests::LeafVertices leaf_vertices;
+  RayTests::Entry stack[kStackSize];
   int sp = 0;
-  Entry cur{kRoot, 0, 0.0f};
+  RayTests::Entry cur{kRoot, 0, 0.0f};
   while (true) {
     if (cur.count > 0) {
-      const unsigned char* leaf = base + 8 * static_cast<std::size_t>(cur.at);
-      const int nt = cur.count;
-      const int m = leaf[0] + (leaf[0] & 1);
-      if constexpr (!kAnyHit) {
-        // Its normals, in case it holds the final hit (they are not part of the block).
-        const unsigned char* nrm = LeafNormals(leaf);
-        for (int byte = 0; byte < 24 * leaf[0]; byte += 64) __builtin_prefetch(nrm + byte);
-      }
-      const unsigned char* px = leaf + 8 + 8 * m * kx;
-      const unsigned char* py = leaf + 8 + 8 * m * ky;
-      const unsigned char* pz = leaf + 8 + 8 * m * kz;
-      for (int i = 0; i < m; i += 2) {
-        const D2 az = Load2(pz + 8 * i) - o_z;
-        Store2(&sxa[i], (Load2(px + 8 * i) - o_x) - sx2 * az);
-        Store2(&sya[i], (Load2(py + 8 * i) - o_y) - sy2 * az);
-        Store2(&dza[i], az);
-      }
-      const unsigned char* tri = leaf + 8 + 24 * m;
-      const unsigned char* corner = tri + 4 * nt;
-      for (int j = 0; j < nt; ++j) {
-        const int a = corner[3 * j], b = corner[3 * j + 1], c = corner[3 * j + 2];
-        const double u = sxa[c] * sya[b] - sya[c] * sxa[b];
-        const double v = sxa[a] * sya[c] - sya[a] * sxa[c];
-        const double w = sxa[b] * sya[a] - sya[b] * sxa[a];
-        if (((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0))) continue;
-        const double det = u + v + w;
-        if (det == 0.0) continue;
-        const double az = wray.sz * dza[a], bz = wray.sz * dza[b], cz = wray.sz * dza[c];
-        const double t = (u * az + v * bz + w * cz) / det;
-        if (!(t >= t_min && t <= best)) continue;
-        if constexpr (kAnyHit) {
-          return HitSlot{cur.at, j};
-        } else {
-          std::int32_t triangle;
-          std::memcpy(&triangle, tri + 4 * j, sizeof(triangle));
-          if (best_triangle >= 0 && t == best && triangle > best_triangle) continue;
-          best = t;
-          best_f = to_tmax_f(best);
-          best4 = Splat(best_f);
-          best_triangle = triangle;
-          best_slot = HitSlot{cur.at, j};
-          *best_t = t;
-          *best_b1 = v / det;
-          *best_b2 = w / det;
-        }
+      if (tests.Leaf<kAnyHit>(base, cur, &leaf_vertices, &closest, best_t, best_b1, best_b2)) {
+        return closest.slot;
       }
     } else {
       const unsigned char* node = base + 8 * static_cast<std::size_t>(cur.at);
-      const F4 t0x = (LoadBytes(node + near_at[0]) - ox) * ix;
-      const F4 t1x = (LoadBytes(node + far_at[0]) - ox) * ix;
-      const F4 t0y = (LoadBytes(node + near_at[1]) - oy) * iy;
-      const F4 t1y = (LoadBytes(node + far_at[1]) - oy) * iy;
-      const F4 t0z = (LoadBytes(node + near_at[2]) - oz) * iz;
-      const F4 t1z = (LoadBytes(node + far_at[2]) - oz) * iz;
-      const F4 tnear = Max(Max(t0x, t0y), Max(t0z, tmin4));
-      const F4 tfar = Min(Min(t1x, t1y), Min(t1z, best4)) * grow4;
-      unsigned hit = MoveMask(tnear <= tfar);
+      F4 tnear;
+      const unsigned hit = tests.Boxes(node, closest.t4, &tnear);
       if (hit != 0) {
-        const Node4& n = *reinterpret_cast<const Node4*>(node);
-        // Entry for child k. An inner child's block (its node and leaves) is fetched whole
-        // right away; a leaf child is part of this node's block, fetched already.
-        auto enter = [&](int k) -> Entry {
-          const unsigned char* q = base + 8 * static_cast<std::size_t>(n.child[k]);
-          for (int line = 0; line < -n.count[k]; line += 4) {  // (up to 3 lines past its end)
-            __builtin_prefetch(q + 64 * line);
-            __builtin_prefetch(q + 64 * line + 64);
-            __builtin_prefetch(q + 64 * line + 128);
-            __builtin_prefetch(q + 64 * line + 192);
-          }
-          return {n.child[k], n.count[k], tnear[k]};
-        };
-        if ((hit & (hit - 1)) == 0) {
-          cur = enter(__builtin_ctz(hit));  // one child entered: the common case
-          continue;
-        }
-        Entry found[4] = {};
-        int nf = 0;
-        do {
-          found[nf++] = enter(__builtin_ctz(hit));
-          hit &= hit - 1;
-        } while (hit != 0);
-        // Nearest first: sort by entry distance (descending), push all but the nearest.
-        for (int a = 1; a < nf; ++a) {
-          for (int b = a; b > 0 && found[b].t > found[b - 1].t; --b)
-            std::swap(found[b], found[b - 1]);
-        }
-        stack[sp] = found[0];  // entries past nf - 2 are scratch, overwritten later
-        stack[sp + 1] = found[1];
-        stack[sp + 2] = found[2];
-        sp += nf - 1;
-        cur = found[nf - 1];
+        cur = RayTests::Enter(base, node, hit, tnear, stack, &sp);
         continue;
       }
     }
     // Pop the next node still in front of the closest hit so far.
     do {
-      if (sp == 0) return best_slot;
+      if (sp == 0) return closest.slot;
       --sp;
-    } while (stack[sp].t > best_f);
+    } while (stack[sp].t > closest.t_f);
     cur = stack[sp];
   }
 }

@@ -149,6 +149,7 @@ class Bvh {
   template <bool kAnyHit>
   HitSlot Traverse(const Ray& ray, double t_min, double t_max, double* best_t, double* best_b1,
                    double* best_b2) const;
+  struct RayTests;  // Traverse's per-ray box and triangle tests (bvh.cc)
 
   class Writer;  // lays the tree out in lines_ (bvh.cc)
 

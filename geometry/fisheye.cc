@@ -6,16 +6,15 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "base/field_error.h"
+
 namespace gs360 {
 namespace {
 
 constexpr double kHalfPi = 0.5 * std::numbers::pi;
 
 [[noreturn]] void Bad(const char* field, double v, const char* rule) {
-  std::ostringstream os;
-  os.precision(17);
-  os << "FisheyeIntrinsics." << field << " " << rule << ", got " << v;
-  throw std::invalid_argument(os.str());
+  ThrowFieldError(std::string("FisheyeIntrinsics.") + field, v, rule);
 }
 
 }  // namespace

@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <array>
+#include <assimp/Exporter.hpp>
 #include <assimp/Importer.hpp>
 #include <cmath>
 #include <cstdio>
@@ -14,7 +15,7 @@
 #include <sstream>
 #include <unordered_map>
 
-#include "geometry/hash.h"
+#include "base/hash.h"
 
 namespace gs360 {
 namespace {
@@ -796,101 +797,66 @@ TriangleMesh LoadMesh(const std::filesystem::path& path, const MeshLoadOptions& 
 
 namespace {
 
-std::ofstream OpenForWrite(const std::filesystem::path& path, bool binary) {
-  std::ofstream out(path, binary ? std::ios::binary | std::ios::trunc : std::ios::trunc);
-  if (!out) throw MeshError("cannot open " + Quoted(path) + " for writing");
-  out.precision(17);
-  return out;
-}
-
-void FinishWrite(std::ofstream& out, const std::filesystem::path& path) {
-  out.flush();
-  if (!out) throw MeshError("error while writing " + Quoted(path));
-}
-
-void AppendFloat(std::string& buf, float f) {
-  char bytes[4];
-  std::memcpy(bytes, &f, 4);
-  buf.append(bytes, 4);
+// Exports `mesh` with assimp's exporter `format` ("stlb", "stl", "objnomtl", "ply"). The scene
+// owns its arrays (aiScene's destructor frees them with delete[]); coordinates become float32
+// (assimp's ai_real).
+void Export(const std::filesystem::path& path, const TriangleMesh& mesh, const char* format) {
+  aiScene scene;
+  scene.mRootNode = new aiNode();
+  scene.mRootNode->mNumMeshes = 1;
+  scene.mRootNode->mMeshes = new unsigned int[1]{0};
+  scene.mNumMaterials = 1;
+  scene.mMaterials = new aiMaterial* [1] { new aiMaterial() };
+  scene.mNumMeshes = 1;
+  scene.mMeshes = new aiMesh* [1] { new aiMesh() };
+  aiMesh& out = *scene.mMeshes[0];
+  out.mPrimitiveTypes = aiPrimitiveType_TRIANGLE;
+  out.mNumVertices = static_cast<unsigned int>(mesh.vertices.size());
+  out.mVertices = new aiVector3D[mesh.vertices.size()];
+  for (std::size_t i = 0; i < mesh.vertices.size(); ++i) {
+    const Eigen::Vector3d& v = mesh.vertices[i];
+    out.mVertices[i] = aiVector3D(static_cast<ai_real>(v.x()), static_cast<ai_real>(v.y()),
+                                  static_cast<ai_real>(v.z()));
+  }
+  if (mesh.HasNormals()) {
+    out.mNormals = new aiVector3D[mesh.normals.size()];
+    for (std::size_t i = 0; i < mesh.normals.size(); ++i) {
+      const Eigen::Vector3d& n = mesh.normals[i];
+      out.mNormals[i] = aiVector3D(static_cast<ai_real>(n.x()), static_cast<ai_real>(n.y()),
+                                   static_cast<ai_real>(n.z()));
+    }
+  }
+  out.mNumFaces = static_cast<unsigned int>(mesh.triangles.size());
+  out.mFaces = new aiFace[mesh.triangles.size()];
+  for (std::size_t t = 0; t < mesh.triangles.size(); ++t) {
+    const Eigen::Vector3i& f = mesh.triangles[t];
+    out.mFaces[t].mNumIndices = 3;
+    out.mFaces[t].mIndices =
+        new unsigned int[3]{static_cast<unsigned int>(f[0]), static_cast<unsigned int>(f[1]),
+                            static_cast<unsigned int>(f[2])};
+  }
+  Assimp::Exporter exporter;
+  if (exporter.Export(&scene, format, path.string()) != aiReturn_SUCCESS) {
+    throw MeshError("cannot write " + Quoted(path) + ": " + exporter.GetErrorString());
+  }
 }
 
 }  // namespace
 
 void WriteStlBinary(const std::filesystem::path& path, const TriangleMesh& mesh) {
-  std::ofstream out = OpenForWrite(path, true);
-  std::string buf(80, ' ');
-  const char* title = "gs360 binary STL, millimetres";
-  std::memcpy(buf.data(), title, std::strlen(title));
-  const std::uint32_t n = static_cast<std::uint32_t>(mesh.triangles.size());
-  char nb[4];
-  std::memcpy(nb, &n, 4);
-  buf.append(nb, 4);
-  buf.reserve(84 + 50 * mesh.triangles.size());
-  for (int t = 0; t < mesh.NumTriangles(); ++t) {
-    const Eigen::Vector3d nrm = mesh.TriangleNormal(t);
-    for (int k = 0; k < 3; ++k) AppendFloat(buf, static_cast<float>(nrm[k]));
-    for (int c = 0; c < 3; ++c)
-      for (int k = 0; k < 3; ++k)
-        AppendFloat(buf, static_cast<float>(mesh.vertices[mesh.triangles[t][c]][k]));
-    buf.append(2, '\0');
-  }
-  out.write(buf.data(), static_cast<std::streamsize>(buf.size()));
-  FinishWrite(out, path);
+  Export(path, mesh, "stlb");
 }
 
 void WriteStlAscii(const std::filesystem::path& path, const TriangleMesh& mesh) {
-  std::ofstream out = OpenForWrite(path, false);
-  out << "solid gs360\n";
-  for (int t = 0; t < mesh.NumTriangles(); ++t) {
-    const Eigen::Vector3d nrm = mesh.TriangleNormal(t);
-    out << " facet normal " << nrm.x() << " " << nrm.y() << " " << nrm.z() << "\n  outer loop\n";
-    for (int c = 0; c < 3; ++c) {
-      const Eigen::Vector3d& v = mesh.vertices[mesh.triangles[t][c]];
-      out << "   vertex " << v.x() << " " << v.y() << " " << v.z() << "\n";
-    }
-    out << "  endloop\n endfacet\n";
-  }
-  out << "endsolid gs360\n";
-  FinishWrite(out, path);
+  Export(path, mesh, "stl");
 }
 
 void WriteObj(const std::filesystem::path& path, const TriangleMesh& mesh) {
-  std::ofstream out = OpenForWrite(path, false);
-  out << "# gs360 mesh, millimetres\n";
-  for (const auto& v : mesh.vertices) out << "v " << v.x() << " " << v.y() << " " << v.z() << "\n";
-  const bool normals = mesh.HasNormals();
-  if (normals)
-    for (const auto& n : mesh.normals)
-      out << "vn " << n.x() << " " << n.y() << " " << n.z() << "\n";
-  for (const auto& f : mesh.triangles) {
-    out << "f";
-    for (int k = 0; k < 3; ++k) {
-      out << " " << f[k] + 1;
-      if (normals) out << "//" << f[k] + 1;
-    }
-    out << "\n";
-  }
-  FinishWrite(out, path);
+  Export(path, mesh, "objnomtl");
 }
 
 void WritePlyAscii(const std::filesystem::path& path, const TriangleMesh& mesh) {
-  std::ofstream out = OpenForWrite(path, false);
-  const bool normals = mesh.HasNormals();
-  out << "ply\nformat ascii 1.0\ncomment gs360 mesh, millimetres\n"
-      << "element vertex " << mesh.vertices.size() << "\n"
-      << "property double x\nproperty double y\nproperty double z\n";
-  if (normals) out << "property double nx\nproperty double ny\nproperty double nz\n";
-  out << "element face " << mesh.triangles.size() << "\n"
-      << "property list uchar int vertex_indices\nend_header\n";
-  for (std::size_t i = 0; i < mesh.vertices.size(); ++i) {
-    const auto& v = mesh.vertices[i];
-    out << v.x() << " " << v.y() << " " << v.z();
-    if (normals)
-      out << " " << mesh.normals[i].x() << " " << mesh.normals[i].y() << " " << mesh.normals[i].z();
-    out << "\n";
-  }
-  for (const auto& f : mesh.triangles) out << "3 " << f[0] << " " << f[1] << " " << f[2] << "\n";
-  FinishWrite(out, path);
+  Export(path, mesh, "ply");
 }
 
 void WriteMesh(const std::filesystem::path& path, const TriangleMesh& mesh) {

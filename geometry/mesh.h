@@ -158,9 +158,10 @@ struct MeshLoadOptions {
 TriangleMesh LoadMesh(const std::filesystem::path& path, const MeshLoadOptions& options = {},
                       MeshReport* report = nullptr);
 
-// Writers (no assimp; exact output, used by tests and for exporting built-in shapes). Throw
-// MeshError naming the file when it cannot be written. STL stores float32 coordinates and face
-// normals; OBJ and PLY (ASCII) store 17 significant digits and keep shared vertices.
+// Writers, through assimp's exporters (for exporting built-in shapes, and tests). Throw
+// MeshError naming the file when it cannot be written. Coordinates are written as float32; STL
+// has face normals and no shared vertices, OBJ (no .mtl) and PLY (ASCII) keep shared vertices
+// and the vertex normals when the mesh has them.
 void WriteStlBinary(const std::filesystem::path& path, const TriangleMesh& mesh);
 void WriteStlAscii(const std::filesystem::path& path, const TriangleMesh& mesh);
 void WriteObj(const std::filesystem::path& path, const TriangleMesh& mesh);

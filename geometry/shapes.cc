@@ -9,20 +9,16 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "base/field_error.h"
+
 namespace gs360 {
 namespace {
 
 constexpr double kPi = std::numbers::pi;
 constexpr int kTableIntervals = 8192;
 
-[[noreturn]] void ThrowField(const std::string& field, double value, const std::string& rule) {
-  std::ostringstream os;
-  os << field << " " << rule << ", got " << value;
-  throw std::invalid_argument(os.str());
-}
-
 void RequirePositive(const char* field, double v) {
-  if (!(v > 0.0) || !std::isfinite(v)) ThrowField(field, v, "must be finite and > 0");
+  if (!(v > 0.0) || !std::isfinite(v)) ThrowFieldError(field, v, "must be finite and > 0");
 }
 
 std::string Num(double v) {
@@ -449,8 +445,8 @@ void CylinderCapOptions::Check() const {
   RequirePositive("CylinderCapOptions.radius", radius);
   RequirePositive("CylinderCapOptions.height", height);
   if (height < radius) {
-    ThrowField("CylinderCapOptions.height", height,
-               "must be >= radius (" + Num(radius) + ") so the hemispherical cap fits");
+    ThrowFieldError("CylinderCapOptions.height", height,
+                    "must be >= radius (" + Num(radius) + ") so the hemispherical cap fits");
   }
 }
 
@@ -459,44 +455,45 @@ void ConeOptions::Check() const {
   RequirePositive("ConeOptions.height", height);
   RequirePositive("ConeOptions.tip_radius", tip_radius);
   if (tip_radius >= base_radius) {
-    ThrowField("ConeOptions.tip_radius", tip_radius,
-               "must be < base_radius (" + Num(base_radius) + ") for the cone to narrow");
+    ThrowFieldError("ConeOptions.tip_radius", tip_radius,
+                    "must be < base_radius (" + Num(base_radius) + ") for the cone to narrow");
   }
   if (tip_radius >= height) {
-    ThrowField("ConeOptions.tip_radius", tip_radius, "must be < height (" + Num(height) + ")");
+    ThrowFieldError("ConeOptions.tip_radius", tip_radius, "must be < height (" + Num(height) + ")");
   }
 }
 
 void SplineOptions::Check() const {
   const int n = static_cast<int>(control_points.size());
-  if (n < 2) ThrowField("SplineOptions.control_points.size()", n, "must be >= 2");
+  if (n < 2) ThrowFieldError("SplineOptions.control_points.size()", n, "must be >= 2");
   for (int i = 0; i < n; ++i) {
     const std::string name = "SplineOptions.control_points[" + std::to_string(i) + "]";
     const double z = control_points[i].x(), r = control_points[i].y();
-    if (!std::isfinite(z) || !std::isfinite(r)) ThrowField(name + ".z/r", z, "must be finite");
-    if (i == 0 && z != 0.0) ThrowField(name + ".z", z, "must be 0 (the base plane)");
+    if (!std::isfinite(z) || !std::isfinite(r)) ThrowFieldError(name + ".z/r", z, "must be finite");
+    if (i == 0 && z != 0.0) ThrowFieldError(name + ".z", z, "must be 0 (the base plane)");
     if (i > 0 && !(z > control_points[i - 1].x())) {
-      ThrowField(name + ".z", z,
-                 "must be > the previous z (" + Num(control_points[i - 1].x()) + ")");
+      ThrowFieldError(name + ".z", z,
+                      "must be > the previous z (" + Num(control_points[i - 1].x()) + ")");
     }
     if (i + 1 < n && !(r > 0.0))
-      ThrowField(name + ".r", r, "must be > 0 (only the tip is on the axis)");
-    if (i + 1 == n && r != 0.0) ThrowField(name + ".r", r, "must be 0 (the tip is on the axis)");
+      ThrowFieldError(name + ".r", r, "must be > 0 (only the tip is on the axis)");
+    if (i + 1 == n && r != 0.0)
+      ThrowFieldError(name + ".r", r, "must be 0 (the tip is on the axis)");
   }
 }
 
 void TessellationOptions::Check() const {
   if (segments < 3 || segments > 1000000) {
-    ThrowField("TessellationOptions.segments", segments, "must be in [3, 1000000]");
+    ThrowFieldError("TessellationOptions.segments", segments, "must be in [3, 1000000]");
   }
   if (rings < 0 || rings > 1000000) {
-    ThrowField("TessellationOptions.rings", rings, "must be in [0, 1000000] (0 = automatic)");
+    ThrowFieldError("TessellationOptions.rings", rings, "must be in [0, 1000000] (0 = automatic)");
   }
 }
 
 TessellationOptions TessellationOptions::ForTriangleCount(const RevolutionProfile& profile,
                                                           int triangles) {
-  if (triangles < 3) ThrowField("ForTriangleCount triangles", triangles, "must be >= 3");
+  if (triangles < 3) ThrowFieldError("ForTriangleCount triangles", triangles, "must be >= 3");
   const double length = profile.ArcLength();
   const double r0 = profile.BaseRadius();
   TessellationOptions t;
@@ -509,13 +506,13 @@ TessellationOptions TessellationOptions::ForTriangleCount(const RevolutionProfil
 void FinOptions::Check() const {
   RequirePositive("FinOptions.thickness", thickness);
   if (!(inset >= 0.0) || !std::isfinite(inset))
-    ThrowField("FinOptions.inset", inset, "must be finite and >= 0");
-  if (!std::isfinite(bottom_z)) ThrowField("FinOptions.bottom_z", bottom_z, "must be finite");
-  if (std::isnan(top_z)) ThrowField("FinOptions.top_z", top_z, "must not be NaN");
+    ThrowFieldError("FinOptions.inset", inset, "must be finite and >= 0");
+  if (!std::isfinite(bottom_z)) ThrowFieldError("FinOptions.bottom_z", bottom_z, "must be finite");
+  if (std::isnan(top_z)) ThrowFieldError("FinOptions.top_z", top_z, "must not be NaN");
   if (!(top_z > bottom_z))
-    ThrowField("FinOptions.top_z", top_z, "must be > bottom_z (" + Num(bottom_z) + ")");
+    ThrowFieldError("FinOptions.top_z", top_z, "must be > bottom_z (" + Num(bottom_z) + ")");
   if (samples < 2 || samples > 1000000)
-    ThrowField("FinOptions.samples", samples, "must be in [2, 1000000]");
+    ThrowFieldError("FinOptions.samples", samples, "must be in [2, 1000000]");
 }
 
 void SensorShapeOptions::Check() const {
@@ -714,7 +711,7 @@ double FinHalfWidthAt(const FinOptions& options, const RevolutionProfile& profil
 }
 
 SplineOptions FitInscribedProfile(const Bvh& mesh, int samples) {
-  if (samples < 3) ThrowField("FitInscribedProfile samples", samples, "must be >= 3");
+  if (samples < 3) ThrowFieldError("FitInscribedProfile samples", samples, "must be >= 3");
   Ray up;
   up.origin = Eigen::Vector3d(0.0, 0.0, 1e-6);
   up.direction = Eigen::Vector3d::UnitZ();

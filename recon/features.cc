@@ -7,11 +7,13 @@
 
 #include <opencv2/imgproc.hpp>
 
+#include "base/field_error.h"
+
 namespace gs360 {
 namespace {
 
 [[noreturn]] void Bad(const std::string& field, double value, const std::string& rule) {
-  throw std::invalid_argument(field + " must be " + rule + ", got " + std::to_string(value));
+  ThrowFieldError(field, value, "must be " + rule);
 }
 
 // One context scale's bound, shared by DifferenceOptions::Check and ContextFeatures.

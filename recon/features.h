@@ -42,6 +42,15 @@ struct DifferenceOptions {
   // validation loss 0.062 -> 0.021 and the mean depth error 0.060 -> 0.037 mm (64 wide).
   std::vector<double> context_sigmas_px = {1.5, 4.0, 10.0};
   // Throws std::invalid_argument naming the field and its value.
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("floor_dn", self.floor_dn);
+    visit("compensate_gain", self.compensate_gain);
+    visit("gain_min_reference_dn", self.gain_min_reference_dn);
+    visit("gain_stride", self.gain_stride);
+    visit("smooth_sigma_px", self.smooth_sigma_px);
+    visit("context_sigmas_px", self.context_sigmas_px);
+  }
   void Check() const;
 };
 
@@ -83,6 +92,15 @@ struct ContactDetectionOptions {
   double grow_fraction = 0.35;  // ROI = blob box grown by this fraction of its size per side
   int grow_px = 6;              // plus this many pixels per side
   int max_regions = 16;         // largest first
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("blur_sigma_px", self.blur_sigma_px);
+    visit("threshold", self.threshold);
+    visit("min_area_px", self.min_area_px);
+    visit("grow_fraction", self.grow_fraction);
+    visit("grow_px", self.grow_px);
+    visit("max_regions", self.max_regions);
+  }
   void Check() const;
 };
 

@@ -9,6 +9,8 @@
 #include <string>
 #include <vector>
 
+#include "base/field_error.h"
+
 namespace gs360 {
 namespace {
 
@@ -18,8 +20,8 @@ constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 constexpr double kMaxTrianglePx = 32.0;
 
 [[noreturn]] void Bad(const char* field, double value, const char* want) {
-  throw std::invalid_argument(std::string("HeightFieldOptions.") + field + " must be " + want +
-                              ", got " + std::to_string(value));
+  ThrowFieldError(std::string("HeightFieldOptions.") + field, value,
+                  std::string("must be ") + want);
 }
 
 // The undeformed surface on the region's grid: point, normal and derivatives along u and v.
@@ -160,10 +162,10 @@ void HeightFieldOptions::Check() const {
   }
 }
 
-HeightFieldResult IntegrateHeightField(const SurfaceMap& map, const FisheyeCamera& camera,
-                                       const cv::Rect& roi, const cv::Mat& normals,
-                                       const HeightFieldOptions& options,
-                                       const cv::Mat& initial_height) {
+namespace {
+
+void CheckInputs(const SurfaceMap& map, const cv::Rect& roi, const cv::Mat& normals,
+                 const HeightFieldOptions& options, const cv::Mat& initial_height) {
   options.Check();
   if (roi.width < 3 || roi.height < 3 || roi.x < 0 || roi.y < 0 ||
       roi.x + roi.width > map.width() || roi.y + roi.height > map.height()) {
@@ -172,155 +174,205 @@ HeightFieldResult IntegrateHeightField(const SurfaceMap& map, const FisheyeCamer
   if (normals.type() != CV_64FC3 || normals.size() != roi.size()) {
     throw std::invalid_argument("IntegrateHeightField: normals must be CV_64FC3 of the roi's size");
   }
-  const Grid g = BuildGrid(map, roi);
-  const int w = g.w, hgt = g.h;
-  const std::size_t n = g.x0.size();
-
-  // Each pixel's observed normal (camera frame), where it has one.
-  std::vector<Eigen::Vector3d> normal(n, Eigen::Vector3d::Zero());
-  std::vector<std::uint8_t> has_normal(n, 0);
-  for (int y = 0; y < hgt; ++y) {
-    for (int x = 0; x < w; ++x) {
-      const cv::Vec3d nn = normals.at<cv::Vec3d>(y, x);
-      if (!map.visible(roi.x + x, roi.y + y) || !std::isfinite(nn[0]) || !std::isfinite(nn[1]) ||
-          !std::isfinite(nn[2])) {
-        continue;
-      }
-      normal[g.Index(x, y)] = Eigen::Vector3d(nn[0], nn[1], nn[2]);
-      has_normal[g.Index(x, y)] = 1;
-    }
-  }
-
-  // Unknowns: interior grid points (the border is h = 0).
-  std::vector<int> var(n, -1);
-  int unknowns = 0;
-  for (int y = 1; y + 1 < hgt; ++y)
-    for (int x = 1; x + 1 < w; ++x) var[g.Index(x, y)] = unknowns++;
-
   if (!initial_height.empty() &&
       (initial_height.type() != CV_64F || initial_height.size() != roi.size())) {
     throw std::invalid_argument("IntegrateHeightField: initial_height must be CV_64F roi-sized");
   }
-  HeightFieldResult out;
-  std::vector<double> h(n, 0.0);
-  if (!initial_height.empty()) {
-    for (std::size_t i = 0; i < n; ++i) {
-      const int x = static_cast<int>(i % static_cast<std::size_t>(w));
-      const int y = static_cast<int>(i / static_cast<std::size_t>(w));
-      const double v = initial_height.at<double>(y, x);
-      if (var[i] >= 0 && std::isfinite(v)) h[i] = v;
+}
+
+// The iterated least-squares fit of h to the observed normals (see height_field.h).
+class HeightFieldSolver {
+ public:
+  HeightFieldSolver(const SurfaceMap& map, const FisheyeCamera& camera, const cv::Rect& roi,
+                    const cv::Mat& normals, const HeightFieldOptions& options,
+                    const cv::Mat& initial_height)
+      : map_(map),
+        camera_(camera),
+        roi_(roi),
+        options_(options),
+        g_(BuildGrid(map, roi)),
+        w_(g_.w),
+        hgt_(g_.h),
+        n_(g_.x0.size()) {
+    // Each pixel's observed normal (camera frame), where it has one.
+    normal_.assign(n_, Eigen::Vector3d::Zero());
+    has_normal_.assign(n_, 0);
+    for (int y = 0; y < hgt_; ++y) {
+      for (int x = 0; x < w_; ++x) {
+        const cv::Vec3d nn = normals.at<cv::Vec3d>(y, x);
+        if (!map.visible(roi.x + x, roi.y + y) || !std::isfinite(nn[0]) || !std::isfinite(nn[1]) ||
+            !std::isfinite(nn[2])) {
+          continue;
+        }
+        normal_[g_.Index(x, y)] = Eigen::Vector3d(nn[0], nn[1], nn[2]);
+        has_normal_[g_.Index(x, y)] = 1;
+      }
+    }
+    // Unknowns: interior grid points (the border is h = 0).
+    var_.assign(n_, -1);
+    for (int y = 1; y + 1 < hgt_; ++y)
+      for (int x = 1; x + 1 < w_; ++x) var_[g_.Index(x, y)] = unknowns_++;
+    h_.assign(n_, 0.0);
+    if (!initial_height.empty()) {
+      for (std::size_t i = 0; i < n_; ++i) {
+        const int x = static_cast<int>(i % static_cast<std::size_t>(w_));
+        const int y = static_cast<int>(i / static_cast<std::size_t>(w_));
+        const double v = initial_height.at<double>(y, x);
+        if (var_[i] >= 0 && std::isfinite(v)) h_[i] = v;
+      }
+    }
+    target_u_.resize(n_), weight_u_.resize(n_), target_v_.resize(n_), weight_v_.resize(n_);
+  }
+
+  HeightFieldResult Solve() {
+    HeightFieldResult out;
+    for (int pass = 0; pass < options_.iterations; ++pass) {
+      Rasterize(g_, camera_, roi_, h_, &raster_);
+      GatherSlopes();
+      double change = 0.0;
+      if (!SolvePass(&change)) break;
+      out.iterations = pass + 1;
+      if (change < options_.tolerance) break;
+    }
+    Rasterize(g_, camera_, roi_, h_, &raster_);
+    out.height = cv::Mat(roi_.size(), CV_64F, cv::Scalar::all(0.0));
+    out.rho = cv::Mat(roi_.size(), CV_64F, cv::Scalar::all(kNaN));
+    for (int y = 0; y < hgt_; ++y) {
+      for (int x = 0; x < w_; ++x) {
+        const int i = g_.Index(x, y);
+        out.height.at<double>(y, x) = h_[i];
+        if (!map_.visible(roi_.x + x, roi_.y + y)) continue;
+        // Nothing rasterised here (a roi edge or a hole next to an invisible pixel): the pixel's
+        // own grid point, moved along its normal, is the best guess.
+        out.rho.at<double>(y, x) = std::isfinite(raster_.depth[i])
+                                       ? raster_.depth[i]
+                                       : (g_.x0[i] - h_[i] * g_.n0[i]).norm();
+      }
+    }
+    return out;
+  }
+
+ private:
+  // Observations: pixel k sees grid position s'(k) = (sx, sy); its normal gives dh/du and
+  // dh/dv there. A difference h(x + 1) - h(x) is the slope at its midpoint x + 1/2, so the u
+  // slope goes to the two u edges whose midpoints bracket sx, linearly weighted, on the row
+  // nearest sy (likewise v). Measured against giving it to the nearest grid node, whose two
+  // edges then share it equally (a blur of one pixel across the imprint's edge): mean error
+  // with exact slopes < 30 / 30-50 / > 50 deg 0.0100 / 0.0120 / 0.0315 mm against 0.0133 /
+  // 0.0113 / 0.0369 (bench_integration --hf-init --hf-iterations 6); on the 2,000-probe virtual
+  // rig 0.0233 mm against 0.0249 and the peak error 0.054 against 0.060 (docs/benchmarks.md).
+  // Spreading across rows as well blurs the slope jump at the imprint's rim again (0.0241 mm).
+  void GatherSlopes() {
+    std::fill(target_u_.begin(), target_u_.end(), 0.0);
+    std::fill(weight_u_.begin(), weight_u_.end(), 0.0);
+    std::fill(target_v_.begin(), target_v_.end(), 0.0);
+    std::fill(weight_v_.begin(), weight_v_.end(), 0.0);
+    for (std::size_t k = 0; k < n_; ++k) {
+      if (!has_normal_[k]) continue;
+      double sx = static_cast<double>(k % static_cast<std::size_t>(w_));
+      double sy = static_cast<double>(k / static_cast<std::size_t>(w_));
+      if (std::isfinite(raster_.depth[k])) sx = raster_.sx[k], sy = raster_.sy[k];
+      // The surface's geometry at s' is that of its nearest grid point (it varies slowly).
+      const int i = g_.Index(std::clamp(static_cast<int>(std::lround(sx)), 0, w_ - 1),
+                             std::clamp(static_cast<int>(std::lround(sy)), 0, hgt_ - 1));
+      if (!g_.ok[i]) continue;
+      const Eigen::Vector3d& nn = normal_[k];
+      const double nd = nn.dot(g_.n0[i]);
+      if (nd < options_.min_normal_dot) continue;
+      // n is normal to dX/du = dx0/du - dh/du n0 - h dn0/du (h from the last pass).
+      Spread(sx, sy, true, (nn.dot(g_.xu[i]) - h_[i] * nn.dot(g_.nu[i])) / nd);
+      Spread(sy, sx, false, (nn.dot(g_.xv[i]) - h_[i] * nn.dot(g_.nv[i])) / nd);
     }
   }
-  Raster raster;
-  // Per grid edge, indexed by its first node: weighted sum of slope targets and of weights
-  // (u: edge i -> i + 1, v: edge i -> i + w).
-  std::vector<double> target_u(n), weight_u(n), target_v(n), weight_v(n);
-  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> solver;
-  bool analysed = false;
-  for (int pass = 0; pass < options.iterations; ++pass) {
-    Rasterize(g, camera, roi, h, &raster);
-    // Observations: pixel k sees grid position s'(k) = (sx, sy); its normal gives dh/du and
-    // dh/dv there. A difference h(x + 1) - h(x) is the slope at its midpoint x + 1/2, so the u
-    // slope goes to the two u edges whose midpoints bracket sx, linearly weighted, on the row
-    // nearest sy (likewise v). Measured against giving it to the nearest grid node, whose two
-    // edges then share it equally (a blur of one pixel across the imprint's edge): mean error
-    // with exact slopes < 30 / 30-50 / > 50 deg 0.0100 / 0.0120 / 0.0315 mm against 0.0133 /
-    // 0.0113 / 0.0369 (bench_integration --hf-init --hf-iterations 6); on the 2,000-probe virtual
-    // rig 0.0233 mm against 0.0249 and the peak error 0.054 against 0.060 (docs/benchmarks.md).
-    // Spreading across rows as well blurs the slope jump at the imprint's rim again (0.0241 mm).
-    std::fill(target_u.begin(), target_u.end(), 0.0);
-    std::fill(weight_u.begin(), weight_u.end(), 0.0);
-    std::fill(target_v.begin(), target_v.end(), 0.0);
-    std::fill(weight_v.begin(), weight_v.end(), 0.0);
-    // along: the observation's coordinate along the slope's direction, across: the other one.
-    auto spread = [&](double along, double across, bool along_u, double t) {
-      const int len_along = along_u ? w : hgt, len_across = along_u ? hgt : w;
-      const int row = static_cast<int>(std::lround(across));
-      if (row < 0 || row >= len_across) return;
-      const double a = along - 0.5;
-      const int first = static_cast<int>(std::floor(a));
-      const double frac = a - first;
-      for (int e = 0; e < 2; ++e) {
-        const int start = first + e;  // the edge start -> start + 1
-        const double we = e == 0 ? 1.0 - frac : frac;
-        if (start < 0 || start + 1 >= len_along || we <= 0.0) continue;
-        const int node = along_u ? g.Index(start, row) : g.Index(row, start);
-        (along_u ? target_u : target_v)[node] += we * t;
-        (along_u ? weight_u : weight_v)[node] += we;
-      }
-    };
-    for (std::size_t k = 0; k < n; ++k) {
-      if (!has_normal[k]) continue;
-      double sx = static_cast<double>(k % static_cast<std::size_t>(w));
-      double sy = static_cast<double>(k / static_cast<std::size_t>(w));
-      if (std::isfinite(raster.depth[k])) sx = raster.sx[k], sy = raster.sy[k];
-      // The surface's geometry at s' is that of its nearest grid point (it varies slowly).
-      const int i = g.Index(std::clamp(static_cast<int>(std::lround(sx)), 0, w - 1),
-                            std::clamp(static_cast<int>(std::lround(sy)), 0, hgt - 1));
-      if (!g.ok[i]) continue;
-      const Eigen::Vector3d& nn = normal[k];
-      const double nd = nn.dot(g.n0[i]);
-      if (nd < options.min_normal_dot) continue;
-      // n is normal to dX/du = dx0/du - dh/du n0 - h dn0/du (h from the last pass).
-      spread(sx, sy, true, (nn.dot(g.xu[i]) - h[i] * nn.dot(g.nu[i])) / nd);
-      spread(sy, sx, false, (nn.dot(g.xv[i]) - h[i] * nn.dot(g.nv[i])) / nd);
+
+  // along: the observation's coordinate along the slope's direction, across: the other one.
+  void Spread(double along, double across, bool along_u, double t) {
+    const int len_along = along_u ? w_ : hgt_, len_across = along_u ? hgt_ : w_;
+    const int row = static_cast<int>(std::lround(across));
+    if (row < 0 || row >= len_across) return;
+    const double a = along - 0.5;
+    const int first = static_cast<int>(std::floor(a));
+    const double frac = a - first;
+    for (int e = 0; e < 2; ++e) {
+      const int start = first + e;  // the edge start -> start + 1
+      const double we = e == 0 ? 1.0 - frac : frac;
+      if (start < 0 || start + 1 >= len_along || we <= 0.0) continue;
+      const int node = along_u ? g_.Index(start, row) : g_.Index(row, start);
+      (along_u ? target_u_ : target_v_)[node] += we * t;
+      (along_u ? weight_u_ : weight_v_)[node] += we;
     }
-    // Normal equations of sum_e w_e (h_b - h_a - t_e)^2.
+  }
+
+  // Solves the normal equations of sum_e w_e (h_b - h_a - t_e)^2 and moves h there; *change:
+  // the largest move. False (h kept) when the factorisation fails.
+  bool SolvePass(double* change) {
     std::vector<Eigen::Triplet<double>> trip;
-    trip.reserve(static_cast<std::size_t>(unknowns) * 5);
-    Eigen::VectorXd rhs = Eigen::VectorXd::Zero(unknowns);
+    trip.reserve(static_cast<std::size_t>(unknowns_) * 5);
+    Eigen::VectorXd rhs = Eigen::VectorXd::Zero(unknowns_);
     auto edge = [&](int a, int b, bool along_u) {
-      const double wsum = (along_u ? weight_u : weight_v)[a];
-      double t = 0.0, we = options.unobserved_weight;
+      const double wsum = (along_u ? weight_u_ : weight_v_)[a];
+      double t = 0.0, we = options_.unobserved_weight;
       if (wsum > 1e-9) {
-        t = (along_u ? target_u : target_v)[a] / wsum;
-        we = std::clamp(wsum, options.unobserved_weight, 1.0);
+        t = (along_u ? target_u_ : target_v_)[a] / wsum;
+        we = std::clamp(wsum, options_.unobserved_weight, 1.0);
       }
-      const int va = var[a], vb = var[b];
+      const int va = var_[a], vb = var_[b];
       if (va >= 0) trip.emplace_back(va, va, we), rhs[va] -= we * t;
       if (vb >= 0) trip.emplace_back(vb, vb, we), rhs[vb] += we * t;
       if (va >= 0 && vb >= 0) trip.emplace_back(va, vb, -we), trip.emplace_back(vb, va, -we);
     };
-    for (int y = 0; y < hgt; ++y) {
-      for (int x = 0; x < w; ++x) {
-        const int i = g.Index(x, y);
-        if (x + 1 < w) edge(i, i + 1, true);
-        if (y + 1 < hgt) edge(i, i + w, false);
+    for (int y = 0; y < hgt_; ++y) {
+      for (int x = 0; x < w_; ++x) {
+        const int i = g_.Index(x, y);
+        if (x + 1 < w_) edge(i, i + 1, true);
+        if (y + 1 < hgt_) edge(i, i + w_, false);
       }
     }
-    Eigen::SparseMatrix<double> a(unknowns, unknowns);
+    Eigen::SparseMatrix<double> a(unknowns_, unknowns_);
     a.setFromTriplets(trip.begin(), trip.end());
-    if (!analysed) solver.analyzePattern(a), analysed = true;
-    solver.factorize(a);
+    if (!analysed_) solver_.analyzePattern(a), analysed_ = true;
+    solver_.factorize(a);
     // Every unknown has four edges of weight > 0 and the border is fixed: the matrix is
     // positive definite. Should the factorisation still fail, keep the last pass's h.
-    if (solver.info() != Eigen::Success) break;
-    const Eigen::VectorXd sol = solver.solve(rhs);
-    double change = 0.0;
-    for (std::size_t i = 0; i < n; ++i) {
-      if (var[i] < 0) continue;
-      change = std::max(change, std::abs(sol[var[i]] - h[i]));
-      h[i] = sol[var[i]];
+    if (solver_.info() != Eigen::Success) return false;
+    const Eigen::VectorXd sol = solver_.solve(rhs);
+    *change = 0.0;
+    for (std::size_t i = 0; i < n_; ++i) {
+      if (var_[i] < 0) continue;
+      *change = std::max(*change, std::abs(sol[var_[i]] - h_[i]));
+      h_[i] = sol[var_[i]];
     }
-    out.iterations = pass + 1;
-    if (change < options.tolerance) break;
+    return true;
   }
 
-  Rasterize(g, camera, roi, h, &raster);
-  out.height = cv::Mat(roi.size(), CV_64F, cv::Scalar::all(0.0));
-  out.rho = cv::Mat(roi.size(), CV_64F, cv::Scalar::all(kNaN));
-  for (int y = 0; y < hgt; ++y) {
-    for (int x = 0; x < w; ++x) {
-      const int i = g.Index(x, y);
-      out.height.at<double>(y, x) = h[i];
-      if (!map.visible(roi.x + x, roi.y + y)) continue;
-      // Nothing rasterised here (a roi edge or a hole next to an invisible pixel): the pixel's
-      // own grid point, moved along its normal, is the best guess.
-      out.rho.at<double>(y, x) =
-          std::isfinite(raster.depth[i]) ? raster.depth[i] : (g.x0[i] - h[i] * g.n0[i]).norm();
-    }
-  }
-  return out;
+  const SurfaceMap& map_;
+  const FisheyeCamera& camera_;
+  const cv::Rect roi_;
+  const HeightFieldOptions& options_;
+  const Grid g_;
+  const int w_, hgt_;
+  const std::size_t n_;
+  std::vector<Eigen::Vector3d> normal_;  // observed, per grid point
+  std::vector<std::uint8_t> has_normal_;
+  std::vector<int> var_;  // unknown index per grid point, -1 on the border
+  int unknowns_ = 0;
+  std::vector<double> h_;
+  Raster raster_;
+  // Per grid edge, indexed by its first node: weighted sum of slope targets and of weights
+  // (u: edge i -> i + 1, v: edge i -> i + w).
+  std::vector<double> target_u_, weight_u_, target_v_, weight_v_;
+  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> solver_;
+  bool analysed_ = false;
+};
+
+}  // namespace
+
+HeightFieldResult IntegrateHeightField(const SurfaceMap& map, const FisheyeCamera& camera,
+                                       const cv::Rect& roi, const cv::Mat& normals,
+                                       const HeightFieldOptions& options,
+                                       const cv::Mat& initial_height) {
+  CheckInputs(map, roi, normals, options, initial_height);
+  return HeightFieldSolver(map, camera, roi, normals, options, initial_height).Solve();
 }
 
 }  // namespace gs360

@@ -36,11 +36,8 @@ namespace gs360 {
 struct HeightFieldOptions {
   // Projection / solve passes at most, 1..100. Where little is hidden the passes converge and
   // more of them help. Where the imprint is seen obliquely, each pass moves what is hidden, and
-  // further passes are not reliably better: they stop earlier there. Measured on the
-  // 2,000-probe virtual rig, physical truth (docs/benchmarks.md): 12 / 6 passes give < 30 / > 50
-  // deg 0.0170 / 0.0315 mm; 6 everywhere 0.0199 / 0.0315; 10 everywhere 0.0175 / 0.0421. On the
-  // synthetic wall with exact slopes (bench_integration --hf-init), > 50 deg: 0.0315 at 6
-  // passes, 0.046 at 12. Why the oblique passes drift is not pinned down.
+  // further passes are not reliably better: they stop earlier there (the measurements that chose
+  // 12 and 6 are in docs/benchmarks.md).
   int iterations = 12;                   // imprints seen within oblique_view_angle_deg
   int oblique_iterations = 6;            // imprints seen at oblique_view_angle_deg or beyond
   double oblique_view_angle_deg = 40.0;  // ImprintViewAngleDeg (recon/reconstructor.h), [0, 90]
@@ -55,6 +52,16 @@ struct HeightFieldOptions {
   // the virtual rig's < 30 deg band). [0, 90).
   double min_view_angle_deg = 0.0;
   // The passes for an imprint seen at `imprint_view_deg` (iterations or oblique_iterations).
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("iterations", self.iterations);
+    visit("oblique_iterations", self.oblique_iterations);
+    visit("oblique_view_angle_deg", self.oblique_view_angle_deg);
+    visit("tolerance", self.tolerance);
+    visit("unobserved_weight", self.unobserved_weight);
+    visit("min_normal_dot", self.min_normal_dot);
+    visit("min_view_angle_deg", self.min_view_angle_deg);
+  }
   int Passes(double imprint_view_deg) const {
     return imprint_view_deg >= oblique_view_angle_deg ? oblique_iterations : iterations;
   }

@@ -19,16 +19,15 @@
 #include <utility>
 #include <vector>
 
+#include "base/field_error.h"
+
 namespace gs360 {
 namespace {
 
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 [[noreturn]] void BadField(const char* type, const char* field, double v, const char* rule) {
-  std::ostringstream os;
-  os.precision(17);
-  os << type << "." << field << " " << rule << ", got " << v;
-  throw std::invalid_argument(os.str());
+  ThrowFieldError(std::string(type) + "." + field, v, rule);
 }
 
 // 64-byte aligned scratch for fftw_execute_r2r (plans are made on arrays of the same alignment).

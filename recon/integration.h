@@ -34,6 +34,10 @@ struct GradientOptions {
   // Pixels whose normal is within this angle of grazing (|n.d| < sin(angle)) get no gradient
   // (valid = 0): the division would explode. Degrees, [0, 45).
   double min_grazing_deg = 3.0;
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("min_grazing_deg", self.min_grazing_deg);
+  }
   void Check() const;
 };
 
@@ -72,6 +76,16 @@ struct IntegrationOptions {
   double min_weight = 1e-4;
   double tolerance = 1e-7;
   HeightFieldOptions height_field;  // kHeightField only
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("method", self.method);
+    visit("iterations", self.iterations);
+    visit("sharpness", self.sharpness);
+    visit("scale", self.scale);
+    visit("min_weight", self.min_weight);
+    visit("tolerance", self.tolerance);
+    visit("height_field", self.height_field);
+  }
   void Check() const;
 };
 

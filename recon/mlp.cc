@@ -8,7 +8,7 @@
 #include <stdexcept>
 #include <string>
 
-#include "geometry/hash.h"
+#include "base/hash.h"
 
 namespace gs360 {
 namespace {

@@ -37,6 +37,12 @@ struct FourierFeatures {
   int inputs = 0;       // the leading inputs encoded (0 = no encoding), <= the input size
   int frequencies = 0;  // per input, 0..16
   float base = 1.0f;    // lowest angular frequency, rad per normalised unit, finite and > 0
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("inputs", self.inputs);
+    visit("frequencies", self.frequencies);
+    visit("base", self.base);
+  }
   int Width() const { return 2 * inputs * frequencies; }
   bool Enabled() const { return Width() > 0; }
   // Throws std::invalid_argument naming the field and value (input_size: the network's).

@@ -8,8 +8,8 @@
 
 #include <opencv2/imgcodecs.hpp>
 
+#include "base/hash.h"
 #include "geometry/bvh.h"
-#include "geometry/hash.h"
 
 namespace gs360 {
 namespace {

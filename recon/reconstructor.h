@@ -48,6 +48,15 @@ struct ReconstructionOptions {
   // Run-time, not serialised.
   int mlp_stride = 1;
   // Throws std::invalid_argument naming the field (delegates to the nested Check()s).
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("difference", self.difference);
+    visit("detection", self.detection);
+    visit("gradients", self.gradients);
+    visit("integration", self.integration);
+    visit("screen", self.screen);
+    visit("mlp_stride", self.mlp_stride);
+  }
   void Check() const;
 };
 nlohmann::json ReconstructionOptionsToJson(const ReconstructionOptions& options);

@@ -13,7 +13,8 @@
 #include <string>
 #include <thread>
 
-#include "geometry/hash.h"
+#include "base/field_error.h"
+#include "base/hash.h"
 
 namespace gs360 {
 namespace {
@@ -26,10 +27,7 @@ constexpr char kMagic[8] = {'G', 'S', '3', '6', '0', 'S', 'M', 'P'};
 constexpr std::uint32_t kVersion = 1;
 
 [[noreturn]] void BadOption(const char* field, double v, const char* rule) {
-  std::ostringstream os;
-  os.precision(17);
-  os << "SurfaceMapOptions." << field << " " << rule << ", got " << v;
-  throw std::invalid_argument(os.str());
+  ThrowFieldError(std::string("SurfaceMapOptions.") + field, v, rule);
 }
 
 void Put3(std::vector<float>& a, std::size_t i, const Eigen::Vector3d& x) {

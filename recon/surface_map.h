@@ -50,6 +50,12 @@ struct SurfaceMapOptions {
   double fin_margin_px = 1.0;        // dilate the fin pixels by this radius (>= 0)
   int threads = 2;                   // for Build (1..64)
   // Throws std::invalid_argument naming the field and its value.
+  template <typename Self, typename Visitor>
+  static void Fields(Self& self, Visitor& visit) {
+    visit("max_view_angle_deg", self.max_view_angle_deg);
+    visit("fin_margin_px", self.fin_margin_px);
+    visit("threads", self.threads);
+  }
   void Check() const;
 };
 

@@ -1,7 +1,7 @@
 #pragma once
 // The rig, described once: the sensor (a built-in shape or a mesh file), the LED fins, the
 // NOMINAL camera (intrinsics and CAD pose), the mount on the machine, the probe's tool offset and
-// ball. Planning (gcode/plan.h MakeRigGeometry), the run and daemon configurations and the
+// ball. Planning (plan/plan.h MakeRigGeometry), the run and daemon configurations and the
 // virtual rig (sim/rig_model.h, which adds its hidden truth on top) all take this struct; its
 // defaults here are the only ones. Production code only ever sees these nominal values;
 // calibration estimates the truth.

@@ -1,7 +1,7 @@
 #pragma once
 // The rig's solid parts built from its description: the gel's outer surface, the surface of
 // revolution the fins are laid out on, and the fins. One builder for the planner
-// (gcode/plan.h MakeRigGeometry) and the virtual rig (sim/rig_model.h).
+// (plan/plan.h MakeRigGeometry) and the virtual rig (sim/rig_model.h).
 //
 // Frame: sensor (mm). Throws MeshError (geometry/mesh.h) for a mesh file that cannot be used,
 // std::invalid_argument for an invalid RigConfig or fins that do not fit the shape.

@@ -9,6 +9,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "base/field_error.h"
 #include "sim/camera_random.h"
 
 namespace gs360 {
@@ -16,70 +17,67 @@ namespace {
 
 constexpr double kDegToRad = std::numbers::pi / 180.0;
 
-[[noreturn]] void ThrowField(const std::string& field, double value, const std::string& why) {
-  std::ostringstream os;
-  os << field << " = " << value << ": " << why;
-  throw std::invalid_argument(os.str());
-}
-
 void RequireDn(const std::string& field, double v) {
-  if (!(v >= 0.0 && v <= 255.0)) ThrowField(field, v, "must be in [0, 255]");
+  if (!(v >= 0.0 && v <= 255.0)) ThrowFieldError(field, v, "must be in [0, 255]");
 }
 
 }  // namespace
 
 void CheckerboardOptions::Check() const {
-  if (cols < 2 || cols > 100) ThrowField("CheckerboardOptions.cols", cols, "must be in [2, 100]");
-  if (rows < 2 || rows > 100) ThrowField("CheckerboardOptions.rows", rows, "must be in [2, 100]");
+  if (cols < 2 || cols > 100)
+    ThrowFieldError("CheckerboardOptions.cols", cols, "must be in [2, 100]");
+  if (rows < 2 || rows > 100)
+    ThrowFieldError("CheckerboardOptions.rows", rows, "must be in [2, 100]");
   if (!std::isfinite(square_mm) || !(square_mm > 0.0)) {
-    ThrowField("CheckerboardOptions.square_mm", square_mm, "must be finite and > 0");
+    ThrowFieldError("CheckerboardOptions.square_mm", square_mm, "must be finite and > 0");
   }
   if (!std::isfinite(border_squares) || border_squares < 0.0) {
-    ThrowField("CheckerboardOptions.border_squares", border_squares, "must be finite and >= 0");
+    ThrowFieldError("CheckerboardOptions.border_squares", border_squares,
+                    "must be finite and >= 0");
   }
   if (supersample < 1 || supersample > 16) {
-    ThrowField("CheckerboardOptions.supersample", supersample, "must be in [1, 16]");
+    ThrowFieldError("CheckerboardOptions.supersample", supersample, "must be in [1, 16]");
   }
   RequireDn("CheckerboardOptions.white_dn", white_dn);
   RequireDn("CheckerboardOptions.black_dn", black_dn);
   RequireDn("CheckerboardOptions.background_dn", background_dn);
   if (!std::isfinite(vignetting_v2) || !std::isfinite(vignetting_v4)) {
-    ThrowField("CheckerboardOptions.vignetting_v2 + v4", vignetting_v2 + vignetting_v4,
-               "must be finite");
+    ThrowFieldError("CheckerboardOptions.vignetting_v2 + v4", vignetting_v2 + vignetting_v4,
+                    "must be finite");
   }
   if (!std::isfinite(shot_gain) || shot_gain < 0.0) {
-    ThrowField("CheckerboardOptions.shot_gain", shot_gain, "must be finite and >= 0");
+    ThrowFieldError("CheckerboardOptions.shot_gain", shot_gain, "must be finite and >= 0");
   }
   if (!std::isfinite(read_noise) || read_noise < 0.0) {
-    ThrowField("CheckerboardOptions.read_noise", read_noise, "must be finite and >= 0");
+    ThrowFieldError("CheckerboardOptions.read_noise", read_noise, "must be finite and >= 0");
   }
 }
 
 void CheckerboardPoseOptions::Check() const {
   if (count < 1 || count > 10000)
-    ThrowField("CheckerboardPoseOptions.count", count, "must be in [1, 10000]");
+    ThrowFieldError("CheckerboardPoseOptions.count", count, "must be in [1, 10000]");
   if (!(min_distance_mm > 0.0)) {
-    ThrowField("CheckerboardPoseOptions.min_distance_mm", min_distance_mm, "must be > 0");
+    ThrowFieldError("CheckerboardPoseOptions.min_distance_mm", min_distance_mm, "must be > 0");
   }
   if (!(max_distance_mm >= min_distance_mm) || !std::isfinite(max_distance_mm)) {
-    ThrowField("CheckerboardPoseOptions.max_distance_mm", max_distance_mm,
-               "must be finite and >= min_distance_mm");
+    ThrowFieldError("CheckerboardPoseOptions.max_distance_mm", max_distance_mm,
+                    "must be finite and >= min_distance_mm");
   }
   if (!(max_field_deg >= 0.0 && max_field_deg < 90.0)) {
-    ThrowField("CheckerboardPoseOptions.max_field_deg", max_field_deg, "must be in [0, 90)");
+    ThrowFieldError("CheckerboardPoseOptions.max_field_deg", max_field_deg, "must be in [0, 90)");
   }
   if (!(max_tilt_deg >= 0.0 && max_tilt_deg < 80.0)) {
-    ThrowField("CheckerboardPoseOptions.max_tilt_deg", max_tilt_deg, "must be in [0, 80)");
+    ThrowFieldError("CheckerboardPoseOptions.max_tilt_deg", max_tilt_deg, "must be in [0, 80)");
   }
   if (!(max_roll_deg >= 0.0 && max_roll_deg <= 180.0)) {
-    ThrowField("CheckerboardPoseOptions.max_roll_deg", max_roll_deg, "must be in [0, 180]");
+    ThrowFieldError("CheckerboardPoseOptions.max_roll_deg", max_roll_deg, "must be in [0, 180]");
   }
   if (!(margin_px >= 0.0) || !std::isfinite(margin_px)) {
-    ThrowField("CheckerboardPoseOptions.margin_px", margin_px, "must be finite and >= 0");
+    ThrowFieldError("CheckerboardPoseOptions.margin_px", margin_px, "must be finite and >= 0");
   }
   if (!(min_corner_spacing_px >= 0.0) || !std::isfinite(min_corner_spacing_px)) {
-    ThrowField("CheckerboardPoseOptions.min_corner_spacing_px", min_corner_spacing_px,
-               "must be finite and >= 0");
+    ThrowFieldError("CheckerboardPoseOptions.min_corner_spacing_px", min_corner_spacing_px,
+                    "must be finite and >= 0");
   }
 }
 

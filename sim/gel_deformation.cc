@@ -9,13 +9,13 @@
 #include <string>
 #include <unordered_map>
 
+#include "base/field_error.h"
+
 namespace gs360 {
 namespace {
 
 [[noreturn]] void ThrowField(const std::string& field, double value, const std::string& why) {
-  std::ostringstream os;
-  os << "GelDeformationOptions." << field << " = " << value << ": " << why;
-  throw std::invalid_argument(os.str());
+  ThrowFieldError("GelDeformationOptions." + field, value, why);
 }
 
 // Barycentrics (of a, b, c) of the point of triangle (a, b, c) closest to p (Ericson,
@@ -241,246 +241,334 @@ std::vector<int> GelPatchBuilder::TrianglesNear(const Eigen::Vector3d& center,
   return result;
 }
 
-DisplacedPatch GelPatchBuilder::Build(const Eigen::Vector3d& ball_center,
-                                      double ball_radius) const {
-  DisplacedPatch patch;
-  const BallIndentation indentation(ball_center, ball_radius, options_);
-  const std::vector<int> coarse = TrianglesNear(ball_center, indentation.InfluenceRadius());
-  if (coarse.empty()) return patch;
-  const auto& V = mesh_.vertices;
-  const auto& N = mesh_.normals;
-  const int nc = static_cast<int>(coarse.size());
+namespace {
 
-  // Subdivision per coarse triangle: a power of two, finer in the contact zone.
-  const double contact_zone = ball_radius + options_.elastic_length + 0.1;
+// Key of the coarse edge (a, b), either direction.
+std::uint64_t EdgeKey(int a, int b) {
+  const int lo = std::min(a, b), hi = std::max(a, b);
+  return (static_cast<std::uint64_t>(lo) << 32) | static_cast<std::uint32_t>(hi);
+}
+
+// Lattice point (i, j) of a triangle subdivided n times, in row order.
+int LatticeIndex(int n, int i, int j) {
+  return j * (n + 1) - j * (j - 1) / 2 + i;
+}
+
+// Subdivision per coarse triangle: a power of two, finer in the contact zone (within
+// `contact_zone` of the ball centre). *max_subdivisions: the largest.
+std::vector<int> Subdivisions(const TriangleMesh& mesh, const std::vector<int>& coarse,
+                              const Eigen::Vector3d& ball_center, double contact_zone,
+                              const GelDeformationOptions& options, int* max_subdivisions) {
+  const auto& V = mesh.vertices;
+  const int nc = static_cast<int>(coarse.size());
   std::vector<int> tri_n(nc);
   for (int ct = 0; ct < nc; ++ct) {
-    const auto& tri = mesh_.triangles[coarse[ct]];
+    const auto& tri = mesh.triangles[coarse[ct]];
     double longest = 0.0;
     for (int k = 0; k < 3; ++k)
       longest = std::max(longest, (V[tri[(k + 1) % 3]] - V[tri[k]]).norm());
     const double d2 = PointTriangleDistance2(ball_center, V[tri[0]], V[tri[1]], V[tri[2]]);
     const double target =
-        d2 < contact_zone * contact_zone ? options_.max_edge : options_.bulge_max_edge;
+        d2 < contact_zone * contact_zone ? options.max_edge : options.bulge_max_edge;
     int n = 1;
     while (n < kMaxSubdivisions && longest / n > target) n *= 2;
     tri_n[ct] = n;
-    patch.max_subdivisions = std::max(patch.max_subdivisions, n);
+    *max_subdivisions = std::max(*max_subdivisions, n);
   }
-  // Per coarse edge (lo, hi): the coarser of its two sides.
-  auto edge_key = [](int a, int b) {
-    const int lo = std::min(a, b), hi = std::max(a, b);
-    return (static_cast<std::uint64_t>(lo) << 32) | static_cast<std::uint32_t>(hi);
-  };
+  return tri_n;
+}
+
+// Per coarse edge (lo, hi): the coarser of its two sides.
+std::unordered_map<std::uint64_t, int> EdgeSubdivisions(const TriangleMesh& mesh,
+                                                        const std::vector<int>& coarse,
+                                                        const std::vector<int>& tri_n) {
+  const int nc = static_cast<int>(coarse.size());
   std::unordered_map<std::uint64_t, int> edge_n;
   edge_n.reserve(3 * nc);
   for (int ct = 0; ct < nc; ++ct) {
-    const auto& tri = mesh_.triangles[coarse[ct]];
+    const auto& tri = mesh.triangles[coarse[ct]];
     for (int k = 0; k < 3; ++k) {
-      auto [it, inserted] = edge_n.try_emplace(edge_key(tri[k], tri[(k + 1) % 3]), tri_n[ct]);
+      auto [it, inserted] = edge_n.try_emplace(EdgeKey(tri[k], tri[(k + 1) % 3]), tri_n[ct]);
       if (!inserted) it->second = std::min(it->second, tri_n[ct]);
     }
   }
+  return edge_n;
+}
 
-  // Refined vertices. "Free" vertices get the model's displacement; "snapped" ones (a finer
-  // triangle's edge points between the shared points of a coarser edge) are interpolated
-  // between two free vertices afterwards.
-  std::vector<Eigen::Vector3d> rest;
-  std::vector<Eigen::Vector3d> normal0;
-  struct Snap {
-    int vertex, a, b;
-    double s;
-  };
+// A refined vertex on a finer triangle's edge between two shared points of the coarser edge:
+// interpolated (at s) between vertices a and b.
+struct Snap {
+  int vertex, a, b;
+  double s;
+};
+
+// The refined vertices of the coarse triangles. "Free" vertices get the model's displacement;
+// "snapped" ones are interpolated between two free vertices afterwards.
+struct Lattices {
+  std::vector<Eigen::Vector3d> rest;     // undeformed position
+  std::vector<Eigen::Vector3d> normal0;  // smooth normal
   std::vector<Snap> snaps;
-  std::unordered_map<int, int> corner_id;
-  std::unordered_map<std::uint64_t, int> edge_base;
-  auto corner = [&](int v) {
-    auto [it, inserted] = corner_id.try_emplace(v, static_cast<int>(rest.size()));
+  std::vector<int> start;  // per coarse triangle: its first lattice point in ids (and the end)
+  std::vector<int> ids;    // refined vertex of each lattice point (LatticeIndex order)
+};
+
+// Builds the Lattices (once per builder): vertices shared along coarse edges and at corners are
+// made once.
+class LatticeBuilder {
+ public:
+  LatticeBuilder(const TriangleMesh& mesh, const std::unordered_map<std::uint64_t, int>& edge_n)
+      : mesh_(mesh), vertices_(mesh.vertices), normals_(mesh.normals), edge_n_(edge_n) {}
+
+  Lattices Build(const std::vector<int>& coarse, const std::vector<int>& tri_n) {
+    const int nc = static_cast<int>(coarse.size());
+    out_.start.assign(nc + 1, 0);
+    for (int ct = 0; ct < nc; ++ct)
+      out_.start[ct + 1] = out_.start[ct] + (tri_n[ct] + 1) * (tri_n[ct] + 2) / 2;
+    out_.ids.resize(out_.start[nc]);
+    for (int ct = 0; ct < nc; ++ct) {
+      const auto& tri = mesh_.triangles[coarse[ct]];
+      const int A = tri[0], B = tri[1], C = tri[2];
+      const int n = tri_n[ct];
+      const double inv_n = 1.0 / n;
+      int* out = out_.ids.data() + out_.start[ct];
+      for (int j = 0; j <= n; ++j) {
+        for (int i = 0; i + j <= n; ++i) {
+          int id;
+          if (i == 0 && j == 0) {
+            id = Corner(A);
+          } else if (i == n) {
+            id = Corner(B);
+          } else if (j == n) {
+            id = Corner(C);
+          } else if (j == 0) {
+            id = EdgePoint(A, B, n, i);
+          } else if (i == 0) {
+            id = EdgePoint(A, C, n, j);
+          } else if (i + j == n) {
+            id = EdgePoint(B, C, n, j);
+          } else {
+            id = static_cast<int>(out_.rest.size());
+            const double wa = static_cast<double>(n - i - j), wb = i, wc = j;
+            out_.rest.push_back((wa * vertices_[A] + wb * vertices_[B] + wc * vertices_[C]) *
+                                inv_n);
+            out_.normal0.push_back(
+                (wa * normals_[A] + wb * normals_[B] + wc * normals_[C]).normalized());
+          }
+          out[LatticeIndex(n, i, j)] = id;
+        }
+      }
+    }
+    return std::move(out_);
+  }
+
+ private:
+  int Corner(int v) {
+    auto [it, inserted] = corner_id_.try_emplace(v, static_cast<int>(out_.rest.size()));
     if (inserted) {
-      rest.push_back(V[v]);
-      normal0.push_back(N[v].normalized());
+      out_.rest.push_back(vertices_[v]);
+      out_.normal0.push_back(normals_[v].normalized());
     }
     return it->second;
-  };
+  }
+
   // Shared vertex j (0..ne) of the edge (lo, hi), counted from lo.
-  auto shared_point = [&](int lo, int hi, int ne, int j) {
-    if (j == 0) return corner(lo);
-    if (j == ne) return corner(hi);
-    auto [it, inserted] = edge_base.try_emplace(edge_key(lo, hi), static_cast<int>(rest.size()));
+  int SharedPoint(int lo, int hi, int ne, int j) {
+    if (j == 0) return Corner(lo);
+    if (j == ne) return Corner(hi);
+    auto [it, inserted] =
+        edge_base_.try_emplace(EdgeKey(lo, hi), static_cast<int>(out_.rest.size()));
     if (inserted) {
       const double inv = 1.0 / ne;
       for (int m = 1; m < ne; ++m) {
         const double a = static_cast<double>(ne - m), b = static_cast<double>(m);
-        rest.push_back((a * V[lo] + b * V[hi]) * inv);
-        normal0.push_back((a * N[lo] + b * N[hi]).normalized());
+        out_.rest.push_back((a * vertices_[lo] + b * vertices_[hi]) * inv);
+        out_.normal0.push_back((a * normals_[lo] + b * normals_[hi]).normalized());
       }
     }
     return it->second + (j - 1);
-  };
+  }
+
   // Lattice point k (0..n) of triangle edge p -> q (n = that triangle's subdivision).
-  auto edge_point = [&](int p, int q, int n, int k) {
+  int EdgePoint(int p, int q, int n, int k) {
     const int lo = std::min(p, q), hi = std::max(p, q);
     const int k_lo = p == lo ? k : n - k;
-    const int ne = edge_n.at(edge_key(p, q));
+    const int ne = edge_n_.at(EdgeKey(p, q));
     const int step = n / ne;  // both powers of two, ne <= n
-    if (k_lo % step == 0) return shared_point(lo, hi, ne, k_lo / step);
+    if (k_lo % step == 0) return SharedPoint(lo, hi, ne, k_lo / step);
     const int j = k_lo / step;
     Snap snap;
-    snap.a = shared_point(lo, hi, ne, j);
-    snap.b = shared_point(lo, hi, ne, j + 1);
+    snap.a = SharedPoint(lo, hi, ne, j);
+    snap.b = SharedPoint(lo, hi, ne, j + 1);
     snap.s = static_cast<double>(k_lo % step) / step;
-    snap.vertex = static_cast<int>(rest.size());  // after shared_point may have added vertices
-    rest.push_back((1.0 - snap.s) * rest[snap.a] + snap.s * rest[snap.b]);
-    normal0.push_back(((1.0 - snap.s) * normal0[snap.a] + snap.s * normal0[snap.b]).normalized());
-    snaps.push_back(snap);
+    snap.vertex = static_cast<int>(out_.rest.size());  // after SharedPoint may have added some
+    out_.rest.push_back((1.0 - snap.s) * out_.rest[snap.a] + snap.s * out_.rest[snap.b]);
+    out_.normal0.push_back(
+        ((1.0 - snap.s) * out_.normal0[snap.a] + snap.s * out_.normal0[snap.b]).normalized());
+    out_.snaps.push_back(snap);
     return snap.vertex;
-  };
-
-  auto lattice_index = [](int n, int i, int j) { return j * (n + 1) - j * (j - 1) / 2 + i; };
-  std::vector<int> lattice_start(nc + 1, 0);
-  for (int ct = 0; ct < nc; ++ct)
-    lattice_start[ct + 1] = lattice_start[ct] + (tri_n[ct] + 1) * (tri_n[ct] + 2) / 2;
-  std::vector<int> ids(lattice_start[nc]);
-  for (int ct = 0; ct < nc; ++ct) {
-    const auto& tri = mesh_.triangles[coarse[ct]];
-    const int A = tri[0], B = tri[1], C = tri[2];
-    const int n = tri_n[ct];
-    const double inv_n = 1.0 / n;
-    int* out = ids.data() + lattice_start[ct];
-    for (int j = 0; j <= n; ++j) {
-      for (int i = 0; i + j <= n; ++i) {
-        int id;
-        if (i == 0 && j == 0) {
-          id = corner(A);
-        } else if (i == n) {
-          id = corner(B);
-        } else if (j == n) {
-          id = corner(C);
-        } else if (j == 0) {
-          id = edge_point(A, B, n, i);
-        } else if (i == 0) {
-          id = edge_point(A, C, n, j);
-        } else if (i + j == n) {
-          id = edge_point(B, C, n, j);
-        } else {
-          id = static_cast<int>(rest.size());
-          const double wa = static_cast<double>(n - i - j), wb = i, wc = j;
-          rest.push_back((wa * V[A] + wb * V[B] + wc * V[C]) * inv_n);
-          normal0.push_back((wa * N[A] + wb * N[B] + wc * N[C]).normalized());
-        }
-        out[lattice_index(n, i, j)] = id;
-      }
-    }
   }
 
-  // Displacement: the model at free vertices, interpolation at snapped ones.
-  const std::size_t nv = rest.size();
+  const TriangleMesh& mesh_;
+  const std::vector<Eigen::Vector3d>& vertices_;
+  const std::vector<Eigen::Vector3d>& normals_;
+  const std::unordered_map<std::uint64_t, int>& edge_n_;
+  Lattices out_;
+  std::unordered_map<int, int> corner_id_;
+  std::unordered_map<std::uint64_t, int> edge_base_;
+};
+
+// Per refined vertex: p, delta and the moved position.
+struct Displacement {
+  std::vector<double> penetration, delta;
+  std::vector<Eigen::Vector3d> moved;
+  double max_depth = 0.0;  // largest p
+};
+
+// The model at free vertices, interpolation at snapped ones.
+Displacement Displace(const BallIndentation& indentation, const Lattices& lat) {
+  const std::size_t nv = lat.rest.size();
   std::vector<std::uint8_t> snapped(nv, 0);
-  for (const Snap& snap : snaps) snapped[snap.vertex] = 1;
-  std::vector<double> penetration(nv, 0.0), delta(nv, 0.0);
-  double max_depth = 0.0;
+  for (const Snap& snap : lat.snaps) snapped[snap.vertex] = 1;
+  Displacement d;
+  d.penetration.assign(nv, 0.0);
+  d.delta.assign(nv, 0.0);
   for (std::size_t v = 0; v < nv; ++v) {
     if (snapped[v]) continue;
-    penetration[v] = indentation.Penetration(rest[v], normal0[v]);
-    max_depth = std::max(max_depth, penetration[v]);
+    d.penetration[v] = indentation.Penetration(lat.rest[v], lat.normal0[v]);
+    d.max_depth = std::max(d.max_depth, d.penetration[v]);
   }
   for (std::size_t v = 0; v < nv; ++v) {
     if (snapped[v]) continue;
-    delta[v] = indentation.SoftDepth(penetration[v]) - indentation.Bulge(rest[v], max_depth);
+    d.delta[v] =
+        indentation.SoftDepth(d.penetration[v]) - indentation.Bulge(lat.rest[v], d.max_depth);
   }
-  std::vector<Eigen::Vector3d> moved(nv);
+  d.moved.resize(nv);
   for (std::size_t v = 0; v < nv; ++v) {
-    if (!snapped[v]) moved[v] = rest[v] - delta[v] * normal0[v];
+    if (!snapped[v]) d.moved[v] = lat.rest[v] - d.delta[v] * lat.normal0[v];
   }
-  for (const Snap& snap : snaps) {
+  for (const Snap& snap : lat.snaps) {
     const double s = snap.s;
-    penetration[snap.vertex] = (1.0 - s) * penetration[snap.a] + s * penetration[snap.b];
-    delta[snap.vertex] = (1.0 - s) * delta[snap.a] + s * delta[snap.b];
-    moved[snap.vertex] = (1.0 - s) * moved[snap.a] + s * moved[snap.b];
+    d.penetration[snap.vertex] = (1.0 - s) * d.penetration[snap.a] + s * d.penetration[snap.b];
+    d.delta[snap.vertex] = (1.0 - s) * d.delta[snap.a] + s * d.delta[snap.b];
+    d.moved[snap.vertex] = (1.0 - s) * d.moved[snap.a] + s * d.moved[snap.b];
   }
+  return d;
+}
 
-  // Keep the coarse triangles that move; emit their sub-triangles with compacted vertex ids.
-  std::vector<int> remap(nv, -1);
-  for (int ct = 0; ct < nc; ++ct) {
+// Keeps the coarse triangles that move: emits their sub-triangles into the patch with compacted
+// vertex ids.
+void EmitMovedTriangles(const std::vector<int>& coarse, const std::vector<int>& tri_n,
+                        const Lattices& lat, const Displacement& d, DisplacedPatch* patch) {
+  std::vector<int> remap(lat.rest.size(), -1);
+  for (int ct = 0; ct < static_cast<int>(coarse.size()); ++ct) {
     const int n = tri_n[ct];
-    const int* lat = ids.data() + lattice_start[ct];
-    const int count = lattice_start[ct + 1] - lattice_start[ct];
+    const int* ids = lat.ids.data() + lat.start[ct];
+    const int count = lat.start[ct + 1] - lat.start[ct];
     bool any_moved = false;
-    for (int k = 0; k < count && !any_moved; ++k) any_moved = delta[lat[k]] != 0.0;
+    for (int k = 0; k < count && !any_moved; ++k) any_moved = d.delta[ids[k]] != 0.0;
     if (!any_moved) continue;
-    patch.replaced_triangles.push_back(coarse[ct]);
+    patch->replaced_triangles.push_back(coarse[ct]);
     auto vid = [&](int i, int j) {
-      const int g = lat[lattice_index(n, i, j)];
+      const int g = ids[LatticeIndex(n, i, j)];
       if (remap[g] < 0) {
-        remap[g] = static_cast<int>(patch.rest_vertices.size());
-        patch.rest_vertices.push_back(rest[g]);
-        patch.rest_normals.push_back(normal0[g]);
-        patch.displacement.push_back(delta[g]);
-        patch.penetration.push_back(penetration[g]);
-        patch.mesh.vertices.push_back(moved[g]);
+        remap[g] = static_cast<int>(patch->rest_vertices.size());
+        patch->rest_vertices.push_back(lat.rest[g]);
+        patch->rest_normals.push_back(lat.normal0[g]);
+        patch->displacement.push_back(d.delta[g]);
+        patch->penetration.push_back(d.penetration[g]);
+        patch->mesh.vertices.push_back(d.moved[g]);
       }
       return remap[g];
     };
     for (int j = 0; j < n; ++j) {
       for (int i = 0; i + j < n; ++i) {
-        patch.mesh.triangles.emplace_back(vid(i, j), vid(i + 1, j), vid(i, j + 1));
+        patch->mesh.triangles.emplace_back(vid(i, j), vid(i + 1, j), vid(i, j + 1));
         if (i + j < n - 1) {
-          patch.mesh.triangles.emplace_back(vid(i + 1, j), vid(i + 1, j + 1), vid(i, j + 1));
+          patch->mesh.triangles.emplace_back(vid(i + 1, j), vid(i + 1, j + 1), vid(i, j + 1));
         }
       }
     }
   }
-  if (patch.replaced_triangles.empty()) return patch;
-  patch.max_depth = max_depth;
-  // Contact point: the undeformed surface point closest to the ball centre.
+}
+
+// Contact point: the undeformed surface point of the replaced triangles closest to the ball
+// centre.
+void SetContactPoint(const TriangleMesh& mesh, const Eigen::Vector3d& ball_center,
+                     DisplacedPatch* patch) {
+  const auto& V = mesh.vertices;
+  const auto& N = mesh.normals;
   double closest = std::numeric_limits<double>::infinity();
-  for (const int t : patch.replaced_triangles) {
-    const auto& tri = mesh_.triangles[t];
+  for (const int t : patch->replaced_triangles) {
+    const auto& tri = mesh.triangles[t];
     const Eigen::Vector3d w = ClosestBarycentrics(ball_center, V[tri[0]], V[tri[1]], V[tri[2]]);
     const Eigen::Vector3d x = w[0] * V[tri[0]] + w[1] * V[tri[1]] + w[2] * V[tri[2]];
     const double d2 = (x - ball_center).squaredNorm();
     if (d2 < closest) {
       closest = d2;
-      patch.contact_point = x;
-      patch.contact_normal = (w[0] * N[tri[0]] + w[1] * N[tri[1]] + w[2] * N[tri[2]]).normalized();
+      patch->contact_point = x;
+      patch->contact_normal = (w[0] * N[tri[0]] + w[1] * N[tri[1]] + w[2] * N[tri[2]]).normalized();
     }
   }
-  patch.replaced.assign(mesh_.NumTriangles(), 0);
-  for (const int t : patch.replaced_triangles) patch.replaced[t] = 1;
-  const std::size_t pv = patch.rest_vertices.size();
-  for (std::size_t v = 0; v < pv; ++v) {
-    patch.max_displacement = std::max(patch.max_displacement, patch.displacement[v]);
-  }
+}
 
-  // Shading normals: rotate n0 by the change of the refined mesh's area-weighted vertex normal.
+// Shading normals: n0 rotated by the change of the refined mesh's area-weighted vertex normal.
+// Also flags the triangles that moved.
+void SetShadingNormals(DisplacedPatch* patch) {
+  const std::size_t pv = patch->rest_vertices.size();
   std::vector<Eigen::Vector3d> sum_rest(pv, Eigen::Vector3d::Zero());
   std::vector<Eigen::Vector3d> sum_moved(pv, Eigen::Vector3d::Zero());
-  patch.triangle_displaced.resize(patch.mesh.triangles.size());
-  for (std::size_t t = 0; t < patch.mesh.triangles.size(); ++t) {
-    const Eigen::Vector3i& f = patch.mesh.triangles[t];
-    const auto& R = patch.rest_vertices;
-    const auto& M = patch.mesh.vertices;
+  patch->triangle_displaced.resize(patch->mesh.triangles.size());
+  for (std::size_t t = 0; t < patch->mesh.triangles.size(); ++t) {
+    const Eigen::Vector3i& f = patch->mesh.triangles[t];
+    const auto& R = patch->rest_vertices;
+    const auto& M = patch->mesh.vertices;
     const Eigen::Vector3d nr = (R[f[1]] - R[f[0]]).cross(R[f[2]] - R[f[0]]);
     const Eigen::Vector3d nm = (M[f[1]] - M[f[0]]).cross(M[f[2]] - M[f[0]]);
     for (int k = 0; k < 3; ++k) {
       sum_rest[f[k]] += nr;
       sum_moved[f[k]] += nm;
     }
-    patch.triangle_displaced[t] = patch.displacement[f[0]] != 0.0 ||
-                                  patch.displacement[f[1]] != 0.0 ||
-                                  patch.displacement[f[2]] != 0.0;
+    patch->triangle_displaced[t] = patch->displacement[f[0]] != 0.0 ||
+                                   patch->displacement[f[1]] != 0.0 ||
+                                   patch->displacement[f[2]] != 0.0;
   }
-  patch.mesh.normals.resize(pv);
+  patch->mesh.normals.resize(pv);
   for (std::size_t v = 0; v < pv; ++v) {
     if (sum_rest[v] == sum_moved[v] || sum_rest[v].squaredNorm() == 0.0 ||
         sum_moved[v].squaredNorm() == 0.0) {
-      patch.mesh.normals[v] = patch.rest_normals[v];
+      patch->mesh.normals[v] = patch->rest_normals[v];
     } else {
       const Eigen::Quaterniond q =
           Eigen::Quaterniond::FromTwoVectors(sum_rest[v].normalized(), sum_moved[v].normalized());
-      patch.mesh.normals[v] = (q * patch.rest_normals[v]).normalized();
+      patch->mesh.normals[v] = (q * patch->rest_normals[v]).normalized();
     }
   }
+}
+
+}  // namespace
+
+DisplacedPatch GelPatchBuilder::Build(const Eigen::Vector3d& ball_center,
+                                      double ball_radius) const {
+  DisplacedPatch patch;
+  const BallIndentation indentation(ball_center, ball_radius, options_);
+  const std::vector<int> coarse = TrianglesNear(ball_center, indentation.InfluenceRadius());
+  if (coarse.empty()) return patch;
+  const double contact_zone = ball_radius + options_.elastic_length + 0.1;
+  const std::vector<int> tri_n =
+      Subdivisions(mesh_, coarse, ball_center, contact_zone, options_, &patch.max_subdivisions);
+  const std::unordered_map<std::uint64_t, int> edge_n = EdgeSubdivisions(mesh_, coarse, tri_n);
+  const Lattices lat = LatticeBuilder(mesh_, edge_n).Build(coarse, tri_n);
+  const Displacement d = Displace(indentation, lat);
+  EmitMovedTriangles(coarse, tri_n, lat, d, &patch);
+  if (patch.replaced_triangles.empty()) return patch;
+  patch.max_depth = d.max_depth;
+  SetContactPoint(mesh_, ball_center, &patch);
+  patch.replaced.assign(mesh_.NumTriangles(), 0);
+  for (const int t : patch.replaced_triangles) patch.replaced[t] = 1;
+  for (const double delta : patch.displacement) {
+    patch.max_displacement = std::max(patch.max_displacement, delta);
+  }
+  SetShadingNormals(&patch);
   return patch;
 }
 

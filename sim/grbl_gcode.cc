@@ -103,28 +103,69 @@ bool ReadGrblFloat(std::string_view line, std::size_t& pos, double& value) {
   return true;
 }
 
-int ParseGcodeLine(std::string_view line, const GcodeState& gc, const CoordinateData& coords,
-                   GcodeBlock* out) {
-  GcodeBlock blk;
-  blk.modal = gc.modal;
-  int axis_command = kAxisCommandNone;
-  unsigned axis_words = 0, ijk_words = 0, command_words = 0, value_words = 0;
-  struct {
+namespace {
+
+// GRBL's gc_execute_line, steps 2 and 3, for one line: the block being built (gc_block) and what
+// the words seen so far set. Parse() runs the steps in GRBL's order; every step returns a
+// GrblStatus, and the first error ends the parse.
+class LineParser {
+ public:
+  LineParser(const GcodeState& gc, const CoordinateData& coords) : gc_(gc), coords_(coords) {
+    blk_.modal = gc.modal;
+  }
+
+  int Parse(std::string_view line, GcodeBlock* out) {
+    std::size_t pos = 0;
+    if (!line.empty() && line[0] == '$') {  // "$J=" jog: G1 G94 enforced
+      blk_.jog = true;
+      blk_.modal.motion = kMotionLinear;
+      blk_.modal.inverse_time = false;
+      pos = 3;
+    }
+    if (const int status = ImportWords(line, pos); status != kGrblOk) return status;
+    if (const int status = CheckRatesAndDwell(); status != kGrblOk) return status;
+    if (const int status = CheckModesAndOffsets(); status != kGrblOk) return status;
+    if (const int status = CheckNonModal(); status != kGrblOk) return status;
+    if (const int status = CheckMotion(); status != kGrblOk) return status;
+    if (const int status = CheckUnusedWords(); status != kGrblOk) return status;
+    Write(out);
+    return kGrblOk;
+  }
+
+ private:
+  // STEP 2: import the words.
+  int ImportWords(std::string_view line, std::size_t pos);
+  int ImportGWord(int int_value, int mantissa);
+  int ImportNonModalGWord(int int_value, int* mantissa);
+  int ImportMotionGWord(int int_value, int* mantissa);
+  int ImportModalGWord(int int_value, int* mantissa, unsigned* word_bit);
+  int ImportMWord(int int_value, int mantissa);
+  int ImportValueWord(char letter, double value, int int_value);
+  // STEP 3: error-check, in the order of GRBL's numbered checks.
+  int CheckRatesAndDwell();    // [0.] line number, [2-3.] feed rate, [4.] spindle, [10.] dwell
+  int CheckModesAndOffsets();  // [11.] plane, [12.] units, [14.] tool length, [15.] coordinates
+  int CheckNonModal();         // [19.] non-modal actions
+  int SetCoordinateData();     // [19.] G10
+  int SetTarget();             // [19.] motion targets, G28 / G30, G53
+  int CheckMotion();           // [20.] motion modes
+  int CheckArc();              // [20.] G2 / G3
+  int CheckUnusedWords();      // [0.] unused words, and the jog's limits
+  void Write(GcodeBlock* out) const;
+
+  const GcodeState& gc_;
+  const CoordinateData& coords_;
+  GcodeBlock blk_;
+  int axis_command_ = kAxisCommandNone;
+  unsigned axis_words_ = 0, ijk_words_ = 0, command_words_ = 0, value_words_ = 0;
+  struct {  // GRBL gc_values_t
     double f = 0, p = 0, r = 0, s = 0, n = 0;
     int l = 0, t = 0;
     Eigen::Vector3d xyz = Eigen::Vector3d::Zero();
     Eigen::Vector3d ijk = Eigen::Vector3d::Zero();
-  } v;
+  } v_;
+};
 
-  std::size_t pos = 0;
-  if (!line.empty() && line[0] == '$') {  // "$J=" jog: G1 G94 enforced
-    blk.jog = true;
-    blk.modal.motion = kMotionLinear;
-    blk.modal.inverse_time = false;
-    pos = 3;
-  }
-
-  // STEP 2: import the words.
+int LineParser::ImportWords(std::string_view line, std::size_t pos) {
   while (pos < line.size()) {
     const char letter = line[pos];
     if (letter < 'A' || letter > 'Z') return kGrblExpectedCommandLetter;
@@ -134,463 +175,536 @@ int ParseGcodeLine(std::string_view line, const GcodeState& gc, const Coordinate
     // GRBL: uint8_t int_value = trunc(value); uint16_t mantissa = round(100*(value - int_value)).
     const int int_value =
         static_cast<int>(static_cast<std::uint8_t>(static_cast<long>(std::trunc(value)) & 0xFF));
-    int mantissa = static_cast<int>(static_cast<std::uint16_t>(
+    const int mantissa = static_cast<int>(static_cast<std::uint16_t>(
         static_cast<long>(std::lround(100.0 * (value - int_value))) & 0xFFFF));
-
+    int status;
     switch (letter) {
-      case 'G': {
-        unsigned word_bit = 0;
-        switch (int_value) {
-          case 10:
-          case 28:
-          case 30:
-          case 92:
-            if (mantissa == 0) {
-              if (axis_command) return kGrblGcodeAxisCommandConflict;
-              axis_command = kAxisCommandNonModal;
-            }
-            [[fallthrough]];
-          case 4:
-          case 53:
-            word_bit = kGroupG0;
-            blk.non_modal = int_value;
-            if (int_value == 28 || int_value == 30 || int_value == 92) {
-              if (!(mantissa == 0 || mantissa == 10)) return kGrblGcodeUnsupportedCommand;
-              blk.non_modal += mantissa;
-              mantissa = 0;
-            }
-            break;
-          case 0:
-          case 1:
-          case 2:
-          case 3:
-          case 38:
-            if (axis_command) return kGrblGcodeAxisCommandConflict;
-            axis_command = kAxisCommandMotionMode;
-            [[fallthrough]];
-          case 80:
-            word_bit = kGroupG1;
-            blk.modal.motion = int_value;
-            if (int_value == 38) {
-              if (!(mantissa == 20 || mantissa == 30 || mantissa == 40 || mantissa == 50)) {
-                return kGrblGcodeUnsupportedCommand;
-              }
-              blk.modal.motion += mantissa / 10 + 100;
-              mantissa = 0;
-            }
-            break;
-          case 17:
-          case 18:
-          case 19:
-            word_bit = kGroupG2;
-            blk.modal.plane = int_value - 17;
-            break;
-          case 90:
-          case 91:
-            if (mantissa == 0) {
-              word_bit = kGroupG3;
-              blk.modal.incremental = int_value == 91;
-            } else {
-              word_bit = kGroupG4;
-              if (mantissa != 10 || int_value == 90) return kGrblGcodeUnsupportedCommand;
-              mantissa = 0;  // G91.1: arc IJK incremental, the default; does nothing
-            }
-            break;
-          case 93:
-          case 94:
-            word_bit = kGroupG5;
-            blk.modal.inverse_time = int_value == 93;
-            break;
-          case 20:
-          case 21:
-            word_bit = kGroupG6;
-            blk.modal.inches = int_value == 20;
-            break;
-          case 40:
-            word_bit = kGroupG7;
-            break;
-          case 43:
-          case 49:
-            word_bit = kGroupG8;
-            if (axis_command) return kGrblGcodeAxisCommandConflict;
-            axis_command = kAxisCommandToolLengthOffset;
-            if (int_value == 49) {
-              blk.modal.tool_length_dynamic = false;
-            } else if (mantissa == 10) {
-              blk.modal.tool_length_dynamic = true;
-            } else {
-              return kGrblGcodeUnsupportedCommand;
-            }
-            mantissa = 0;
-            break;
-          case 54:
-          case 55:
-          case 56:
-          case 57:
-          case 58:
-          case 59:
-            word_bit = kGroupG12;
-            blk.modal.coord_select = int_value - 54;
-            break;
-          case 61:
-            word_bit = kGroupG13;
-            if (mantissa != 0) return kGrblGcodeUnsupportedCommand;
-            break;
-          default:
-            return kGrblGcodeUnsupportedCommand;
-        }
-        if (mantissa > 0) return kGrblGcodeCommandValueNotInteger;
-        if (command_words & word_bit) return kGrblGcodeModalGroupViolation;
-        command_words |= word_bit;
+      case 'G':
+        status = ImportGWord(int_value, mantissa);
         break;
-      }
-      case 'M': {
-        if (mantissa > 0) return kGrblGcodeCommandValueNotInteger;
-        unsigned word_bit = 0;
-        switch (int_value) {
-          case 0:
-          case 1:
-          case 2:
-          case 30:
-            word_bit = kGroupM4;
-            if (int_value == 0) {
-              blk.modal.program_flow = 3;  // PROGRAM_FLOW_PAUSED
-            } else if (int_value != 1) {   // M1 optional stop: ignored
-              blk.modal.program_flow = int_value;
-            }
-            break;
-          case 3:
-          case 4:
-          case 5:
-            word_bit = kGroupM7;
-            blk.modal.spindle = int_value == 3 ? 1 : (int_value == 4 ? 2 : 0);
-            break;
-          case 8:
-          case 9:
-            word_bit = kGroupM8;
-            if (int_value == 8) {
-              blk.modal.coolant |= 1;
-            } else {
-              blk.modal.coolant = 0;
-            }
-            break;
-          default:
-            return kGrblGcodeUnsupportedCommand;
-        }
-        if (command_words & word_bit) return kGrblGcodeModalGroupViolation;
-        command_words |= word_bit;
+      case 'M':
+        status = ImportMWord(int_value, mantissa);
         break;
-      }
-      default: {
-        unsigned word_bit = 0;
-        switch (letter) {
-          case 'F':
-            word_bit = kWordF;
-            v.f = value;
-            break;
-          case 'I':
-            word_bit = kWordI;
-            v.ijk[0] = value;
-            ijk_words |= 1u;
-            break;
-          case 'J':
-            word_bit = kWordJ;
-            v.ijk[1] = value;
-            ijk_words |= 2u;
-            break;
-          case 'K':
-            word_bit = kWordK;
-            v.ijk[2] = value;
-            ijk_words |= 4u;
-            break;
-          case 'L':
-            word_bit = kWordL;
-            v.l = int_value;
-            break;
-          case 'N':
-            word_bit = kWordN;
-            v.n = std::trunc(value);
-            break;
-          case 'P':
-            word_bit = kWordP;
-            v.p = value;
-            break;
-          case 'R':
-            word_bit = kWordR;
-            v.r = value;
-            break;
-          case 'S':
-            word_bit = kWordS;
-            v.s = value;
-            break;
-          case 'T':
-            word_bit = kWordT;
-            if (value > 255) return kGrblGcodeMaxValueExceeded;
-            v.t = int_value;
-            break;
-          case 'X':
-            word_bit = kWordX;
-            v.xyz[0] = value;
-            axis_words |= 1u;
-            break;
-          case 'Y':
-            word_bit = kWordY;
-            v.xyz[1] = value;
-            axis_words |= 2u;
-            break;
-          case 'Z':
-            word_bit = kWordZ;
-            v.xyz[2] = value;
-            axis_words |= 4u;
-            break;
-          default:
-            return kGrblGcodeUnsupportedCommand;
-        }
-        if (value_words & word_bit) return kGrblGcodeWordRepeated;
-        if ((word_bit & (kWordF | kWordN | kWordP | kWordT | kWordS)) && value < 0.0) {
-          return kGrblNegativeValue;
-        }
-        value_words |= word_bit;
+      default:
+        status = ImportValueWord(letter, value, int_value);
         break;
-      }
     }
+    if (status != kGrblOk) return status;
   }
+  return kGrblOk;
+}
 
-  // STEP 3: error-check.
-  if (axis_words && !axis_command) axis_command = kAxisCommandMotionMode;
-  if ((value_words & kWordN) && v.n > kMaxLineNumber) return kGrblGcodeInvalidLineNumber;
+int LineParser::ImportGWord(int int_value, int mantissa) {
+  unsigned word_bit = 0;
+  int status;
+  switch (int_value) {
+    case 4:
+    case 10:
+    case 28:
+    case 30:
+    case 53:
+    case 92:
+      word_bit = kGroupG0;
+      status = ImportNonModalGWord(int_value, &mantissa);
+      break;
+    case 0:
+    case 1:
+    case 2:
+    case 3:
+    case 38:
+    case 80:
+      word_bit = kGroupG1;
+      status = ImportMotionGWord(int_value, &mantissa);
+      break;
+    default:
+      status = ImportModalGWord(int_value, &mantissa, &word_bit);
+      break;
+  }
+  if (status != kGrblOk) return status;
+  if (mantissa > 0) return kGrblGcodeCommandValueNotInteger;
+  if (command_words_ & word_bit) return kGrblGcodeModalGroupViolation;
+  command_words_ |= word_bit;
+  return kGrblOk;
+}
+
+// Group 0: G4, G10, G28, G30, G53, G92 (and G28.1, G30.1, G92.1).
+int LineParser::ImportNonModalGWord(int int_value, int* mantissa) {
+  if (int_value != 4 && int_value != 53 && *mantissa == 0) {
+    if (axis_command_) return kGrblGcodeAxisCommandConflict;
+    axis_command_ = kAxisCommandNonModal;
+  }
+  blk_.non_modal = int_value;
+  if (int_value == 28 || int_value == 30 || int_value == 92) {
+    if (!(*mantissa == 0 || *mantissa == 10)) return kGrblGcodeUnsupportedCommand;
+    blk_.non_modal += *mantissa;
+    *mantissa = 0;
+  }
+  return kGrblOk;
+}
+
+// Group 1: G0, G1, G2, G3, G38.2-G38.5, G80.
+int LineParser::ImportMotionGWord(int int_value, int* mantissa) {
+  if (int_value != 80) {
+    if (axis_command_) return kGrblGcodeAxisCommandConflict;
+    axis_command_ = kAxisCommandMotionMode;
+  }
+  blk_.modal.motion = int_value;
+  if (int_value == 38) {
+    if (!(*mantissa == 20 || *mantissa == 30 || *mantissa == 40 || *mantissa == 50)) {
+      return kGrblGcodeUnsupportedCommand;
+    }
+    blk_.modal.motion += *mantissa / 10 + 100;
+    *mantissa = 0;
+  }
+  return kGrblOk;
+}
+
+// The other modal groups: plane, distance, feed rate mode, units, cutter compensation, tool
+// length offset, coordinate system, path control.
+int LineParser::ImportModalGWord(int int_value, int* mantissa, unsigned* word_bit) {
+  switch (int_value) {
+    case 17:
+    case 18:
+    case 19:
+      *word_bit = kGroupG2;
+      blk_.modal.plane = int_value - 17;
+      break;
+    case 90:
+    case 91:
+      if (*mantissa == 0) {
+        *word_bit = kGroupG3;
+        blk_.modal.incremental = int_value == 91;
+      } else {
+        *word_bit = kGroupG4;
+        if (*mantissa != 10 || int_value == 90) return kGrblGcodeUnsupportedCommand;
+        *mantissa = 0;  // G91.1: arc IJK incremental, the default; does nothing
+      }
+      break;
+    case 93:
+    case 94:
+      *word_bit = kGroupG5;
+      blk_.modal.inverse_time = int_value == 93;
+      break;
+    case 20:
+    case 21:
+      *word_bit = kGroupG6;
+      blk_.modal.inches = int_value == 20;
+      break;
+    case 40:
+      *word_bit = kGroupG7;
+      break;
+    case 43:
+    case 49:
+      *word_bit = kGroupG8;
+      if (axis_command_) return kGrblGcodeAxisCommandConflict;
+      axis_command_ = kAxisCommandToolLengthOffset;
+      if (int_value == 49) {
+        blk_.modal.tool_length_dynamic = false;
+      } else if (*mantissa == 10) {
+        blk_.modal.tool_length_dynamic = true;
+      } else {
+        return kGrblGcodeUnsupportedCommand;
+      }
+      *mantissa = 0;
+      break;
+    case 54:
+    case 55:
+    case 56:
+    case 57:
+    case 58:
+    case 59:
+      *word_bit = kGroupG12;
+      blk_.modal.coord_select = int_value - 54;
+      break;
+    case 61:
+      *word_bit = kGroupG13;
+      if (*mantissa != 0) return kGrblGcodeUnsupportedCommand;
+      break;
+    default:
+      return kGrblGcodeUnsupportedCommand;
+  }
+  return kGrblOk;
+}
+
+int LineParser::ImportMWord(int int_value, int mantissa) {
+  if (mantissa > 0) return kGrblGcodeCommandValueNotInteger;
+  unsigned word_bit = 0;
+  switch (int_value) {
+    case 0:
+    case 1:
+    case 2:
+    case 30:
+      word_bit = kGroupM4;
+      if (int_value == 0) {
+        blk_.modal.program_flow = 3;  // PROGRAM_FLOW_PAUSED
+      } else if (int_value != 1) {    // M1 optional stop: ignored
+        blk_.modal.program_flow = int_value;
+      }
+      break;
+    case 3:
+    case 4:
+    case 5:
+      word_bit = kGroupM7;
+      blk_.modal.spindle = int_value == 3 ? 1 : (int_value == 4 ? 2 : 0);
+      break;
+    case 8:
+    case 9:
+      word_bit = kGroupM8;
+      if (int_value == 8) {
+        blk_.modal.coolant |= 1;
+      } else {
+        blk_.modal.coolant = 0;
+      }
+      break;
+    default:
+      return kGrblGcodeUnsupportedCommand;
+  }
+  if (command_words_ & word_bit) return kGrblGcodeModalGroupViolation;
+  command_words_ |= word_bit;
+  return kGrblOk;
+}
+
+int LineParser::ImportValueWord(char letter, double value, int int_value) {
+  unsigned word_bit = 0;
+  switch (letter) {
+    case 'F':
+      word_bit = kWordF;
+      v_.f = value;
+      break;
+    case 'I':
+      word_bit = kWordI;
+      v_.ijk[0] = value;
+      ijk_words_ |= 1u;
+      break;
+    case 'J':
+      word_bit = kWordJ;
+      v_.ijk[1] = value;
+      ijk_words_ |= 2u;
+      break;
+    case 'K':
+      word_bit = kWordK;
+      v_.ijk[2] = value;
+      ijk_words_ |= 4u;
+      break;
+    case 'L':
+      word_bit = kWordL;
+      v_.l = int_value;
+      break;
+    case 'N':
+      word_bit = kWordN;
+      v_.n = std::trunc(value);
+      break;
+    case 'P':
+      word_bit = kWordP;
+      v_.p = value;
+      break;
+    case 'R':
+      word_bit = kWordR;
+      v_.r = value;
+      break;
+    case 'S':
+      word_bit = kWordS;
+      v_.s = value;
+      break;
+    case 'T':
+      word_bit = kWordT;
+      if (value > 255) return kGrblGcodeMaxValueExceeded;
+      v_.t = int_value;
+      break;
+    case 'X':
+      word_bit = kWordX;
+      v_.xyz[0] = value;
+      axis_words_ |= 1u;
+      break;
+    case 'Y':
+      word_bit = kWordY;
+      v_.xyz[1] = value;
+      axis_words_ |= 2u;
+      break;
+    case 'Z':
+      word_bit = kWordZ;
+      v_.xyz[2] = value;
+      axis_words_ |= 4u;
+      break;
+    default:
+      return kGrblGcodeUnsupportedCommand;
+  }
+  if (value_words_ & word_bit) return kGrblGcodeWordRepeated;
+  if ((word_bit & (kWordF | kWordN | kWordP | kWordT | kWordS)) && value < 0.0) {
+    return kGrblNegativeValue;
+  }
+  value_words_ |= word_bit;
+  return kGrblOk;
+}
+
+int LineParser::CheckRatesAndDwell() {
+  if (axis_words_ && !axis_command_) axis_command_ = kAxisCommandMotionMode;
+  if ((value_words_ & kWordN) && v_.n > kMaxLineNumber) return kGrblGcodeInvalidLineNumber;
 
   // [2-3. Feed rate mode and feed rate]
-  if (blk.jog) {
-    if (!(value_words & kWordF)) return kGrblGcodeUndefinedFeedRate;
-    if (blk.modal.inches) v.f *= kMmPerInch;
-  } else if (blk.modal.inverse_time) {
-    if (axis_command == kAxisCommandMotionMode && blk.modal.motion != kMotionNone &&
-        blk.modal.motion != kMotionSeek && !(value_words & kWordF)) {
+  if (blk_.jog) {
+    if (!(value_words_ & kWordF)) return kGrblGcodeUndefinedFeedRate;
+    if (blk_.modal.inches) v_.f *= kMmPerInch;
+  } else if (blk_.modal.inverse_time) {
+    if (axis_command_ == kAxisCommandMotionMode && blk_.modal.motion != kMotionNone &&
+        blk_.modal.motion != kMotionSeek && !(value_words_ & kWordF)) {
       return kGrblGcodeUndefinedFeedRate;
     }
-  } else if (!gc.modal.inverse_time) {
-    if (value_words & kWordF) {
-      if (blk.modal.inches) v.f *= kMmPerInch;
+  } else if (!gc_.modal.inverse_time) {
+    if (value_words_ & kWordF) {
+      if (blk_.modal.inches) v_.f *= kMmPerInch;
     } else {
-      v.f = gc.feed_rate;
+      v_.f = gc_.feed_rate;
     }
   }
   // [4. Spindle speed]
-  if (!(value_words & kWordS)) v.s = gc.spindle_speed;
+  if (!(value_words_ & kWordS)) v_.s = gc_.spindle_speed;
   // [10. Dwell]
-  if (blk.non_modal == kNonModalDwell) {
-    if (!(value_words & kWordP)) return kGrblGcodeValueWordMissing;
-    value_words &= ~kWordP;
+  if (blk_.non_modal == kNonModalDwell) {
+    if (!(value_words_ & kWordP)) return kGrblGcodeValueWordMissing;
+    value_words_ &= ~kWordP;
   }
+  return kGrblOk;
+}
+
+int LineParser::CheckModesAndOffsets() {
   // [11. Plane]
-  switch (blk.modal.plane) {
+  switch (blk_.modal.plane) {
     case 0:
-      blk.axis_0 = 0;
-      blk.axis_1 = 1;
-      blk.axis_linear = 2;
+      blk_.axis_0 = 0;
+      blk_.axis_1 = 1;
+      blk_.axis_linear = 2;
       break;
     case 1:
-      blk.axis_0 = 2;
-      blk.axis_1 = 0;
-      blk.axis_linear = 1;
+      blk_.axis_0 = 2;
+      blk_.axis_1 = 0;
+      blk_.axis_linear = 1;
       break;
     default:
-      blk.axis_0 = 1;
-      blk.axis_1 = 2;
-      blk.axis_linear = 0;
+      blk_.axis_0 = 1;
+      blk_.axis_1 = 2;
+      blk_.axis_linear = 0;
       break;
   }
   // [12. Units]
-  if (blk.modal.inches) {
+  if (blk_.modal.inches) {
     for (int i = 0; i < 3; ++i) {
-      if (axis_words & (1u << i)) v.xyz[i] *= kMmPerInch;
+      if (axis_words_ & (1u << i)) v_.xyz[i] *= kMmPerInch;
     }
   }
   // [14. Tool length offset]
-  if (axis_command == kAxisCommandToolLengthOffset && blk.modal.tool_length_dynamic) {
-    if (axis_words ^ (1u << 2)) return kGrblGcodeG43DynamicAxisError;
+  if (axis_command_ == kAxisCommandToolLengthOffset && blk_.modal.tool_length_dynamic) {
+    if (axis_words_ ^ (1u << 2)) return kGrblGcodeG43DynamicAxisError;
   }
   // [15. Coordinate system]
-  blk.block_coord_system = gc.coord_system;
-  if (command_words & kGroupG12) {
-    if (blk.modal.coord_select > kNCoordinateSystem) return kGrblGcodeUnsupportedCoordSys;
-    if (gc.modal.coord_select != blk.modal.coord_select) {
-      blk.block_coord_system = coords.wcs[static_cast<std::size_t>(blk.modal.coord_select)];
+  blk_.block_coord_system = gc_.coord_system;
+  if (command_words_ & kGroupG12) {
+    if (blk_.modal.coord_select > kNCoordinateSystem) return kGrblGcodeUnsupportedCoordSys;
+    if (gc_.modal.coord_select != blk_.modal.coord_select) {
+      blk_.block_coord_system = coords_.wcs[static_cast<std::size_t>(blk_.modal.coord_select)];
     }
   }
-  // [19. Non-modal actions]
-  switch (blk.non_modal) {
-    case kNonModalSetCoordinateData: {
-      if (!axis_words) return kGrblGcodeNoAxisWords;
-      if (!(value_words & (kWordP | kWordL))) return kGrblGcodeValueWordMissing;
-      int coord_select = static_cast<int>(std::trunc(v.p));
-      if (coord_select > kNCoordinateSystem) return kGrblGcodeUnsupportedCoordSys;
-      if (v.l != 20) {
-        if (v.l == 2) {
-          if (value_words & kWordR) return kGrblGcodeUnsupportedCommand;
-        } else {
-          return kGrblGcodeUnsupportedCommand;
-        }
-      }
-      value_words &= ~(kWordL | kWordP);
-      coord_select = coord_select > 0 ? coord_select - 1 : blk.modal.coord_select;
-      v.ijk = coords.wcs[static_cast<std::size_t>(coord_select)];
-      for (int i = 0; i < 3; ++i) {
-        if (!(axis_words & (1u << i))) continue;
-        if (v.l == 20) {
-          v.ijk[i] = gc.position[i] - gc.coord_offset[i] - v.xyz[i];
-          if (i == 2) v.ijk[i] -= gc.tool_length_offset;
-        } else {
-          v.ijk[i] = v.xyz[i];
-        }
-      }
-      blk.coord_data_index = coord_select;
-      break;
-    }
+  return kGrblOk;
+}
+
+int LineParser::CheckNonModal() {
+  switch (blk_.non_modal) {
+    case kNonModalSetCoordinateData:
+      return SetCoordinateData();
     case kNonModalSetCoordinateOffset:
-      if (!axis_words) return kGrblGcodeNoAxisWords;
+      if (!axis_words_) return kGrblGcodeNoAxisWords;
       for (int i = 0; i < 3; ++i) {
-        if (axis_words & (1u << i)) {
-          v.xyz[i] = gc.position[i] - blk.block_coord_system[i] - v.xyz[i];
-          if (i == 2) v.xyz[i] -= gc.tool_length_offset;
+        if (axis_words_ & (1u << i)) {
+          v_.xyz[i] = gc_.position[i] - blk_.block_coord_system[i] - v_.xyz[i];
+          if (i == 2) v_.xyz[i] -= gc_.tool_length_offset;
         } else {
-          v.xyz[i] = gc.coord_offset[i];
+          v_.xyz[i] = gc_.coord_offset[i];
         }
+      }
+      return kGrblOk;
+    default:
+      return SetTarget();
+  }
+}
+
+int LineParser::SetCoordinateData() {
+  if (!axis_words_) return kGrblGcodeNoAxisWords;
+  if (!(value_words_ & (kWordP | kWordL))) return kGrblGcodeValueWordMissing;
+  int coord_select = static_cast<int>(std::trunc(v_.p));
+  if (coord_select > kNCoordinateSystem) return kGrblGcodeUnsupportedCoordSys;
+  if (v_.l != 20) {
+    if (v_.l == 2) {
+      if (value_words_ & kWordR) return kGrblGcodeUnsupportedCommand;
+    } else {
+      return kGrblGcodeUnsupportedCommand;
+    }
+  }
+  value_words_ &= ~(kWordL | kWordP);
+  coord_select = coord_select > 0 ? coord_select - 1 : blk_.modal.coord_select;
+  v_.ijk = coords_.wcs[static_cast<std::size_t>(coord_select)];
+  for (int i = 0; i < 3; ++i) {
+    if (!(axis_words_ & (1u << i))) continue;
+    if (v_.l == 20) {
+      v_.ijk[i] = gc_.position[i] - gc_.coord_offset[i] - v_.xyz[i];
+      if (i == 2) v_.ijk[i] -= gc_.tool_length_offset;
+    } else {
+      v_.ijk[i] = v_.xyz[i];
+    }
+  }
+  blk_.coord_data_index = coord_select;
+  return kGrblOk;
+}
+
+int LineParser::SetTarget() {
+  if (axis_command_ != kAxisCommandToolLengthOffset && axis_words_) {
+    for (int i = 0; i < 3; ++i) {
+      if (!(axis_words_ & (1u << i))) {
+        v_.xyz[i] = gc_.position[i];
+      } else if (blk_.non_modal != kNonModalAbsoluteOverride) {
+        if (!blk_.modal.incremental) {
+          v_.xyz[i] += blk_.block_coord_system[i] + gc_.coord_offset[i];
+          if (i == 2) v_.xyz[i] += gc_.tool_length_offset;
+        } else {
+          v_.xyz[i] += gc_.position[i];
+        }
+      }
+    }
+  }
+  switch (blk_.non_modal) {
+    case kNonModalGoHome0:
+    case kNonModalGoHome1:
+      v_.ijk = blk_.non_modal == kNonModalGoHome0 ? coords_.g28 : coords_.g30;
+      if (axis_words_) {
+        for (int i = 0; i < 3; ++i) {
+          if (!(axis_words_ & (1u << i))) v_.ijk[i] = gc_.position[i];
+        }
+      } else {
+        axis_command_ = kAxisCommandNone;
+      }
+      break;
+    case kNonModalAbsoluteOverride:
+      if (!(blk_.modal.motion == kMotionSeek || blk_.modal.motion == kMotionLinear)) {
+        return kGrblGcodeG53InvalidMotionMode;
       }
       break;
     default:
-      if (axis_command != kAxisCommandToolLengthOffset && axis_words) {
-        for (int i = 0; i < 3; ++i) {
-          if (!(axis_words & (1u << i))) {
-            v.xyz[i] = gc.position[i];
-          } else if (blk.non_modal != kNonModalAbsoluteOverride) {
-            if (!blk.modal.incremental) {
-              v.xyz[i] += blk.block_coord_system[i] + gc.coord_offset[i];
-              if (i == 2) v.xyz[i] += gc.tool_length_offset;
-            } else {
-              v.xyz[i] += gc.position[i];
-            }
-          }
-        }
-      }
-      switch (blk.non_modal) {
-        case kNonModalGoHome0:
-        case kNonModalGoHome1:
-          v.ijk = blk.non_modal == kNonModalGoHome0 ? coords.g28 : coords.g30;
-          if (axis_words) {
-            for (int i = 0; i < 3; ++i) {
-              if (!(axis_words & (1u << i))) v.ijk[i] = gc.position[i];
-            }
-          } else {
-            axis_command = kAxisCommandNone;
-          }
-          break;
-        case kNonModalAbsoluteOverride:
-          if (!(blk.modal.motion == kMotionSeek || blk.modal.motion == kMotionLinear)) {
-            return kGrblGcodeG53InvalidMotionMode;
-          }
-          break;
-        default:
-          break;
-      }
+      break;
   }
+  return kGrblOk;
+}
 
-  // [20. Motion modes]
-  if (blk.modal.motion == kMotionNone) {
-    if (axis_words) return kGrblGcodeAxisWordsExist;
-  } else if (axis_command == kAxisCommandMotionMode) {
-    if (blk.modal.motion == kMotionSeek) {
-      if (!axis_words) axis_command = kAxisCommandNone;
-    } else {
-      if (v.f == 0.0) return kGrblGcodeUndefinedFeedRate;
-      switch (blk.modal.motion) {
-        case kMotionLinear:
-          if (!axis_words) axis_command = kAxisCommandNone;
-          break;
-        case kMotionCwArc:
-        case kMotionCcwArc: {
-          blk.arc_clockwise = blk.modal.motion == kMotionCwArc;
-          const int a0 = blk.axis_0, a1 = blk.axis_1;
-          if (!axis_words) return kGrblGcodeNoAxisWords;
-          if (!(axis_words & ((1u << a0) | (1u << a1)))) return kGrblGcodeNoAxisWordsInPlane;
-          double x = v.xyz[a0] - gc.position[a0];
-          double y = v.xyz[a1] - gc.position[a1];
-          if (value_words & kWordR) {  // radius mode
-            value_words &= ~kWordR;
-            if (SamePosition(gc.position, v.xyz)) return kGrblGcodeInvalidTarget;
-            if (blk.modal.inches) v.r *= kMmPerInch;
-            double h_x2_div_d = 4.0 * v.r * v.r - x * x - y * y;
-            if (h_x2_div_d < 0) return kGrblGcodeArcRadiusError;
-            h_x2_div_d = -std::sqrt(h_x2_div_d) / std::hypot(x, y);
-            if (blk.modal.motion == kMotionCcwArc) h_x2_div_d = -h_x2_div_d;
-            if (v.r < 0) {
-              h_x2_div_d = -h_x2_div_d;
-              v.r = -v.r;
-            }
-            v.ijk[a0] = 0.5 * (x - (y * h_x2_div_d));
-            v.ijk[a1] = 0.5 * (y + (x * h_x2_div_d));
-          } else {  // centre offset mode
-            if (!(ijk_words & ((1u << a0) | (1u << a1)))) return kGrblGcodeNoOffsetsInPlane;
-            value_words &= ~(kWordI | kWordJ | kWordK);
-            if (blk.modal.inches) {
-              for (int i = 0; i < 3; ++i) {
-                if (ijk_words & (1u << i)) v.ijk[i] *= kMmPerInch;
-              }
-            }
-            x -= v.ijk[a0];
-            y -= v.ijk[a1];
-            const double target_r = std::hypot(x, y);
-            v.r = std::hypot(v.ijk[a0], v.ijk[a1]);
-            const double delta_r = std::abs(target_r - v.r);
-            if (delta_r > 0.005) {
-              if (delta_r > 0.5) return kGrblGcodeInvalidTarget;
-              if (delta_r > 0.001 * v.r) return kGrblGcodeInvalidTarget;
-            }
-          }
-          break;
-        }
-        case kMotionProbeToward:
-        case kMotionProbeTowardNoError:
-        case kMotionProbeAway:
-        case kMotionProbeAwayNoError:
-          if (!axis_words) return kGrblGcodeNoAxisWords;
-          if (SamePosition(gc.position, v.xyz)) return kGrblGcodeInvalidTarget;
-          break;
-        default:
-          break;
-      }
+int LineParser::CheckMotion() {
+  if (blk_.modal.motion == kMotionNone) {
+    if (axis_words_) return kGrblGcodeAxisWordsExist;
+    return kGrblOk;
+  }
+  if (axis_command_ != kAxisCommandMotionMode) return kGrblOk;
+  if (blk_.modal.motion == kMotionSeek) {
+    if (!axis_words_) axis_command_ = kAxisCommandNone;
+    return kGrblOk;
+  }
+  if (v_.f == 0.0) return kGrblGcodeUndefinedFeedRate;
+  switch (blk_.modal.motion) {
+    case kMotionLinear:
+      if (!axis_words_) axis_command_ = kAxisCommandNone;
+      break;
+    case kMotionCwArc:
+    case kMotionCcwArc:
+      return CheckArc();
+    case kMotionProbeToward:
+    case kMotionProbeTowardNoError:
+    case kMotionProbeAway:
+    case kMotionProbeAwayNoError:
+      if (!axis_words_) return kGrblGcodeNoAxisWords;
+      if (SamePosition(gc_.position, v_.xyz)) return kGrblGcodeInvalidTarget;
+      break;
+    default:
+      break;
+  }
+  return kGrblOk;
+}
+
+int LineParser::CheckArc() {
+  blk_.arc_clockwise = blk_.modal.motion == kMotionCwArc;
+  const int a0 = blk_.axis_0, a1 = blk_.axis_1;
+  if (!axis_words_) return kGrblGcodeNoAxisWords;
+  if (!(axis_words_ & ((1u << a0) | (1u << a1)))) return kGrblGcodeNoAxisWordsInPlane;
+  double x = v_.xyz[a0] - gc_.position[a0];
+  double y = v_.xyz[a1] - gc_.position[a1];
+  if (value_words_ & kWordR) {  // radius mode
+    value_words_ &= ~kWordR;
+    if (SamePosition(gc_.position, v_.xyz)) return kGrblGcodeInvalidTarget;
+    if (blk_.modal.inches) v_.r *= kMmPerInch;
+    double h_x2_div_d = 4.0 * v_.r * v_.r - x * x - y * y;
+    if (h_x2_div_d < 0) return kGrblGcodeArcRadiusError;
+    h_x2_div_d = -std::sqrt(h_x2_div_d) / std::hypot(x, y);
+    if (blk_.modal.motion == kMotionCcwArc) h_x2_div_d = -h_x2_div_d;
+    if (v_.r < 0) {
+      h_x2_div_d = -h_x2_div_d;
+      v_.r = -v_.r;
+    }
+    v_.ijk[a0] = 0.5 * (x - (y * h_x2_div_d));
+    v_.ijk[a1] = 0.5 * (y + (x * h_x2_div_d));
+    return kGrblOk;
+  }
+  // Centre offset mode.
+  if (!(ijk_words_ & ((1u << a0) | (1u << a1)))) return kGrblGcodeNoOffsetsInPlane;
+  value_words_ &= ~(kWordI | kWordJ | kWordK);
+  if (blk_.modal.inches) {
+    for (int i = 0; i < 3; ++i) {
+      if (ijk_words_ & (1u << i)) v_.ijk[i] *= kMmPerInch;
     }
   }
-
-  // [0. Unused words]
-  if (blk.jog) {
-    value_words &= ~(kWordN | kWordF);
-  } else {
-    value_words &= ~(kWordN | kWordF | kWordS | kWordT);
+  x -= v_.ijk[a0];
+  y -= v_.ijk[a1];
+  const double target_r = std::hypot(x, y);
+  v_.r = std::hypot(v_.ijk[a0], v_.ijk[a1]);
+  const double delta_r = std::abs(target_r - v_.r);
+  if (delta_r > 0.005) {
+    if (delta_r > 0.5) return kGrblGcodeInvalidTarget;
+    if (delta_r > 0.001 * v_.r) return kGrblGcodeInvalidTarget;
   }
-  if (axis_command) value_words &= ~(kWordX | kWordY | kWordZ);
-  if (value_words) return kGrblGcodeUnusedWords;
+  return kGrblOk;
+}
 
-  if (blk.jog) {
-    if (command_words & ~(kGroupG3 | kGroupG6 | kGroupG0)) return kGrblInvalidJogCommand;
-    if (!(blk.non_modal == kNonModalAbsoluteOverride || blk.non_modal == kNonModalNone)) {
+int LineParser::CheckUnusedWords() {
+  if (blk_.jog) {
+    value_words_ &= ~(kWordN | kWordF);
+  } else {
+    value_words_ &= ~(kWordN | kWordF | kWordS | kWordT);
+  }
+  if (axis_command_) value_words_ &= ~(kWordX | kWordY | kWordZ);
+  if (value_words_) return kGrblGcodeUnusedWords;
+
+  if (blk_.jog) {
+    if (command_words_ & ~(kGroupG3 | kGroupG6 | kGroupG0)) return kGrblInvalidJogCommand;
+    if (!(blk_.non_modal == kNonModalAbsoluteOverride || blk_.non_modal == kNonModalNone)) {
       return kGrblInvalidJogCommand;
     }
   }
-
-  blk.axis_command = axis_command;
-  blk.axis_words = axis_words;
-  blk.feed_rate = v.f;
-  blk.spindle_speed = v.s;
-  blk.tool = v.t;  // GRBL: gc_state.tool = gc_block.values.t (0 when no T word)
-  blk.line_number = static_cast<int>(v.n);
-  blk.dwell_s = v.p;
-  blk.xyz = v.xyz;
-  blk.ijk = v.ijk;
-  blk.radius = v.r;
-  *out = blk;
   return kGrblOk;
+}
+
+void LineParser::Write(GcodeBlock* out) const {
+  GcodeBlock blk = blk_;
+  blk.axis_command = axis_command_;
+  blk.axis_words = axis_words_;
+  blk.feed_rate = v_.f;
+  blk.spindle_speed = v_.s;
+  blk.tool = v_.t;  // GRBL: gc_state.tool = gc_block.values.t (0 when no T word)
+  blk.line_number = static_cast<int>(v_.n);
+  blk.dwell_s = v_.p;
+  blk.xyz = v_.xyz;
+  blk.ijk = v_.ijk;
+  blk.radius = v_.r;
+  *out = blk;
+}
+
+}  // namespace
+
+int ParseGcodeLine(std::string_view line, const GcodeState& gc, const CoordinateData& coords,
+                   GcodeBlock* out) {
+  return LineParser(gc, coords).Parse(line, out);
 }
 
 std::string FormatParserState(const GcodeState& gc, bool report_inches) {

@@ -7,13 +7,13 @@
 #include <stdexcept>
 #include <string>
 
+#include "base/field_error.h"
+
 namespace gs360 {
 namespace {
 
 [[noreturn]] void ThrowField(const std::string& field, double value, const std::string& why) {
-  std::ostringstream os;
-  os << "LightingOptions." << field << " = " << value << ": " << why;
-  throw std::invalid_argument(os.str());
+  ThrowFieldError("LightingOptions." + field, value, why);
 }
 
 void RequireNonNegative(const std::string& field, double value) {

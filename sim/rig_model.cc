@@ -6,6 +6,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "base/field_error.h"
 #include "rig/rig_shape.h"
 #include "sim/camera_random.h"
 
@@ -14,14 +15,9 @@ namespace {
 
 constexpr double kDegToRad = std::numbers::pi / 180.0;
 
-[[noreturn]] void ThrowField(const std::string& field, double value, const std::string& why) {
-  std::ostringstream os;
-  os << field << " = " << value << ": " << why;
-  throw std::invalid_argument(os.str());
-}
-
 void RequireFiniteNonNegative(const std::string& field, double value) {
-  if (!std::isfinite(value) || value < 0.0) ThrowField(field, value, "must be finite and >= 0");
+  if (!std::isfinite(value) || value < 0.0)
+    ThrowFieldError(field, value, "must be finite and >= 0");
 }
 
 // Unit vector uniformly distributed on the sphere.
@@ -38,15 +34,15 @@ void TruePerturbationOptions::Check() const {
   RequireFiniteNonNegative("TruePerturbationOptions.translation_mm", translation_mm);
   RequireFiniteNonNegative("TruePerturbationOptions.rotation_deg", rotation_deg);
   if (rotation_deg >= 90.0) {
-    ThrowField("TruePerturbationOptions.rotation_deg", rotation_deg, "must be < 90");
+    ThrowFieldError("TruePerturbationOptions.rotation_deg", rotation_deg, "must be < 90");
   }
   RequireFiniteNonNegative("TruePerturbationOptions.focal_relative", focal_relative);
   if (focal_relative >= 0.2) {
-    ThrowField("TruePerturbationOptions.focal_relative", focal_relative, "must be < 0.2");
+    ThrowFieldError("TruePerturbationOptions.focal_relative", focal_relative, "must be < 0.2");
   }
   RequireFiniteNonNegative("TruePerturbationOptions.aspect_relative", aspect_relative);
   if (aspect_relative >= 0.2) {
-    ThrowField("TruePerturbationOptions.aspect_relative", aspect_relative, "must be < 0.2");
+    ThrowFieldError("TruePerturbationOptions.aspect_relative", aspect_relative, "must be < 0.2");
   }
   RequireFiniteNonNegative("TruePerturbationOptions.principal_point_px", principal_point_px);
   RequireFiniteNonNegative("TruePerturbationOptions.k1", k1);

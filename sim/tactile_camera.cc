@@ -9,6 +9,7 @@
 #include <string>
 #include <thread>
 
+#include "base/field_error.h"
 #include "sim/camera_random.h"
 #include "sim/ground_truth.h"
 
@@ -26,9 +27,7 @@ constexpr std::array<double, 3> kDriftWeights = {0.6, 0.3, 0.1};
 constexpr double kDeformedThreshold = 1e-4;
 
 [[noreturn]] void ThrowField(const std::string& field, double value, const std::string& why) {
-  std::ostringstream os;
-  os << field << " = " << value << ": " << why;
-  throw std::invalid_argument(os.str());
+  ThrowFieldError(field, value, why);
 }
 
 double SecondsSince(Clock::time_point start) {
@@ -399,6 +398,206 @@ cv::Mat TactileCamera::RenderReference(std::uint64_t frame_index, double run_tim
   return RenderAtBall(std::nullopt, frame_index, run_time_s);
 }
 
+// The region of a frame the displaced patch changes: the patch projected through the true camera,
+// the closest hit per pixel of the ROI (the projected vertices' bounding box), and the pixels and
+// truth maps re-rendered there.
+class TactileCamera::PatchRender {
+ public:
+  // `gain`, `z` and `dst` as RenderInto's whole-image pass has them; contact_p: the penetration
+  // from which a pixel counts as contact.
+  PatchRender(const TactileCamera& camera, const DisplacedPatch& patch, double contact_p,
+              const float gain[3], const std::int16_t* z, std::uint8_t* dst, FrameTruth* truth)
+      : camera_(camera),
+        bg_(*camera.background_),
+        sensor_(camera.options_.sensor),
+        patch_(patch),
+        contact_p_(contact_p),
+        gain_(gain),
+        read2_(static_cast<float>(sensor_.read_noise * sensor_.read_noise)),
+        shot_(static_cast<float>(sensor_.shot_gain)),
+        z_(z),
+        dst_(dst),
+        truth_(truth) {}
+
+  // Sets truth->roi and the ROI's maps, re-renders its pixels; returns their count.
+  int Render() {
+    if (!Project()) return 0;
+    FindHits();
+    return Shade();
+  }
+
+ private:
+  // The patch's vertices in the image and the ROI; false when the ROI is empty.
+  bool Project() {
+    const std::size_t nv = patch_.mesh.vertices.size();
+    uv_.resize(nv);
+    double u_lo = kInf, v_lo = kInf, u_hi = -kInf, v_hi = -kInf;
+    for (std::size_t v = 0; v < nv; ++v) {
+      uv_[v] = bg_.true_camera.ProjectUnchecked(bg_.cam_from_sensor * patch_.mesh.vertices[v]);
+      u_lo = std::min(u_lo, uv_[v].x());
+      u_hi = std::max(u_hi, uv_[v].x());
+      v_lo = std::min(v_lo, uv_[v].y());
+      v_hi = std::max(v_hi, uv_[v].y());
+    }
+    x0_ = std::max(0, static_cast<int>(std::floor(u_lo)) - 1);
+    y0_ = std::max(0, static_cast<int>(std::floor(v_lo)) - 1);
+    x1_ = std::min(camera_.width_ - 1, static_cast<int>(std::ceil(u_hi)) + 1);
+    y1_ = std::min(camera_.height_ - 1, static_cast<int>(std::ceil(v_hi)) + 1);
+    if (!(x1_ >= x0_ && y1_ >= y0_)) return false;
+    truth_->roi = cv::Rect(x0_, y0_, x1_ - x0_ + 1, y1_ - y0_ + 1);
+    rw_ = truth_->roi.width;
+    return true;
+  }
+
+  // Closest patch hit per ROI pixel, starting from what hides the patch there: a fin, or gel the
+  // patch does not replace. Each refined triangle is tested against the pixels inside its
+  // projected bounding box (the triangles are about a pixel in size) with the exact watertight
+  // ray test: a z-buffer with ray-traced depths, no BVH to build.
+  void FindHits() {
+    const int rh = truth_->roi.height;
+    best_t_.assign(static_cast<std::size_t>(rw_) * rh, -1.0);
+    best_tri_.assign(best_t_.size(), -1);
+    best_b1_.resize(best_t_.size());
+    best_b2_.resize(best_t_.size());
+    setup_.resize(best_t_.size());
+    for (int y = y0_; y <= y1_; ++y) {
+      for (int x = x0_; x <= x1_; ++x) {
+        const int i = y * camera_.width_ + x;
+        const std::size_t r = static_cast<std::size_t>(y - y0_) * rw_ + (x - x0_);
+        const std::uint8_t kind = bg_.kind[i];
+        if (kind == kOutside) continue;  // best_t < 0: never hit
+        double limit = bg_.t_fin[i];
+        if (kind == kGel && patch_.replaced[bg_.tri_gel[i]] == 0)
+          limit = std::min(limit, bg_.t_gel[i]);
+        best_t_[r] = limit;
+        setup_[r] = MakeRaySetup(bg_.dir[i]);
+      }
+    }
+    for (int t = 0; t < patch_.mesh.NumTriangles(); ++t) TestTriangle(t);
+  }
+
+  void TestTriangle(int t) {
+    constexpr double kMargin = 0.05;  // px; the projection is not linear over a triangle
+    const Eigen::Vector3i& f = patch_.mesh.triangles[t];
+    const Eigen::Vector2d& a = uv_[f[0]];
+    const Eigen::Vector2d& b = uv_[f[1]];
+    const Eigen::Vector2d& c = uv_[f[2]];
+    const int px0 =
+        std::max(x0_, static_cast<int>(std::ceil(std::min({a.x(), b.x(), c.x()}) - kMargin)));
+    const int px1 =
+        std::min(x1_, static_cast<int>(std::floor(std::max({a.x(), b.x(), c.x()}) + kMargin)));
+    const int py0 =
+        std::max(y0_, static_cast<int>(std::ceil(std::min({a.y(), b.y(), c.y()}) - kMargin)));
+    const int py1 =
+        std::min(y1_, static_cast<int>(std::floor(std::max({a.y(), b.y(), c.y()}) + kMargin)));
+    for (int y = py0; y <= py1; ++y) {
+      for (int x = px0; x <= px1; ++x) {
+        const std::size_t r = static_cast<std::size_t>(y - y0_) * rw_ + (x - x0_);
+        if (best_t_[r] < 0.0) continue;
+        double th, b1, b2;
+        if (!HitTriangle(setup_[r], bg_.origin, patch_.mesh.vertices[f[0]],
+                         patch_.mesh.vertices[f[1]], patch_.mesh.vertices[f[2]], &th, &b1, &b2)) {
+          continue;
+        }
+        if (th > best_t_[r] || (th == best_t_[r] && (best_tri_[r] < 0 || t > best_tri_[r])))
+          continue;
+        best_t_[r] = th;
+        best_tri_[r] = t;
+        best_b1_[r] = b1;
+        best_b2_[r] = b2;
+      }
+    }
+  }
+
+  // The ROI's truth maps, and its pixels that see a displaced part of the patch re-rendered.
+  int Shade() {
+    FrameTruth& truth = *truth_;
+    const cv::Size size = truth.roi.size();
+    truth.contact_mask = cv::Mat::zeros(size, CV_8U);
+    truth.deformed_mask = cv::Mat::zeros(size, CV_8U);
+    truth.rho = cv::Mat(size, CV_64F, cv::Scalar(kNaN));
+    truth.indentation = cv::Mat(size, CV_64F, cv::Scalar(kNaN));
+    truth.points = cv::Mat(size, CV_64FC3, cv::Scalar::all(kNaN));
+    truth.normals = cv::Mat(size, CV_64FC3, cv::Scalar::all(kNaN));
+    int roi_pixels = 0;
+    for (int y = y0_; y <= y1_; ++y) {
+      for (int x = x0_; x <= x1_; ++x) {
+        const int i = y * camera_.width_ + x;
+        const std::uint8_t kind = bg_.kind[i];
+        if (kind == kOutside) continue;
+        ++roi_pixels;
+        const int ry = y - y0_, rx = x - x0_;
+        const std::size_t r = static_cast<std::size_t>(ry) * rw_ + rx;
+        const bool gel_replaced = kind == kGel && patch_.replaced[bg_.tri_gel[i]] != 0;
+        const int tri = best_tri_[r];
+        // A hit on an undisplaced part of a replaced triangle looks like the background.
+        const bool use_patch = tri >= 0 && (patch_.triangle_displaced[tri] != 0 || !gel_replaced);
+        if (use_patch) {
+          ShadeHit(i, ry, rx, r);
+        } else if (kind == kGel) {
+          // The whole-image pass already wrote the background signal.
+          const Eigen::Vector3d p = bg_.origin + bg_.t_gel[i] * bg_.dir[i];
+          const Eigen::Vector3d n = bg_.normal0[i].cast<double>();
+          truth.rho.at<double>(ry, rx) = bg_.t_gel[i];
+          truth.indentation.at<double>(ry, rx) = 0.0;
+          truth.points.at<cv::Vec3d>(ry, rx) = cv::Vec3d(p.x(), p.y(), p.z());
+          truth.normals.at<cv::Vec3d>(ry, rx) = cv::Vec3d(n.x(), n.y(), n.z());
+        }
+      }
+    }
+    return roi_pixels;
+  }
+
+  // Pixel i (ROI row ry, column rx, z-buffer entry r) sees the patch: shaded and its truth set.
+  void ShadeHit(int i, int ry, int rx, std::size_t r) {
+    FrameTruth& truth = *truth_;
+    const Eigen::Vector3i& f = patch_.mesh.triangles[best_tri_[r]];
+    const double b1 = best_b1_[r], b2 = best_b2_[r], b0 = 1.0 - b1 - b2;
+    const double delta = b0 * patch_.displacement[f[0]] + b1 * patch_.displacement[f[1]] +
+                         b2 * patch_.displacement[f[2]];
+    const double pen = b0 * patch_.penetration[f[0]] + b1 * patch_.penetration[f[1]] +
+                       b2 * patch_.penetration[f[2]];
+    const Eigen::Vector3d point = bg_.origin + best_t_[r] * bg_.dir[i];
+    const Eigen::Vector3d normal = (b0 * patch_.mesh.normals[f[0]] +
+                                    b1 * patch_.mesh.normals[f[1]] + b2 * patch_.mesh.normals[f[2]])
+                                       .normalized();
+    const Eigen::Array3d radiance = camera_.lighting_->Shade(point, normal, -bg_.dir[i]);
+    float signal[3];
+    for (int c = 0; c < 3; ++c) {
+      signal[c] = static_cast<float>((bg_.exposure * radiance[c] + sensor_.ambient_dn[c]) *
+                                     bg_.vignette[i]);
+    }
+    const std::size_t j = 3 * static_cast<std::size_t>(i);
+    WritePixel(signal, gain_, z_ ? z_ + j : nullptr, read2_, shot_, dst_ + j);
+    truth.rho.at<double>(ry, rx) = best_t_[r];
+    truth.indentation.at<double>(ry, rx) = delta;
+    truth.points.at<cv::Vec3d>(ry, rx) = cv::Vec3d(point.x(), point.y(), point.z());
+    truth.normals.at<cv::Vec3d>(ry, rx) = cv::Vec3d(normal.x(), normal.y(), normal.z());
+    if (pen >= contact_p_) truth.contact_mask.at<std::uint8_t>(ry, rx) = 255;
+    if (delta > kDeformedThreshold) truth.deformed_mask.at<std::uint8_t>(ry, rx) = 255;
+  }
+
+  const TactileCamera& camera_;
+  const Background& bg_;
+  const SensorModelOptions& sensor_;
+  const DisplacedPatch& patch_;
+  const double contact_p_;
+  const float* const gain_;
+  const float read2_;
+  const float shot_;
+  const std::int16_t* const z_;
+  std::uint8_t* const dst_;
+  FrameTruth* const truth_;
+  std::vector<Eigen::Vector2d> uv_;                   // per patch vertex
+  int x0_ = 0, y0_ = 0, x1_ = -1, y1_ = -1, rw_ = 0;  // ROI (inclusive) and its width
+  // Per ROI pixel: the closest hit's t (< 0: never hit), triangle and barycentrics, and the
+  // pixel's ray.
+  std::vector<double> best_t_;
+  std::vector<int> best_tri_;
+  std::vector<double> best_b1_, best_b2_;
+  std::vector<RaySetup> setup_;
+};
+
 void TactileCamera::RenderInto(const std::optional<Eigen::Vector3d>& ball,
                                std::uint64_t frame_index, double run_time_s, bool rigid,
                                cv::Mat* out) {
@@ -414,8 +613,6 @@ void TactileCamera::RenderInto(const std::optional<Eigen::Vector3d>& ball,
   const float gain[3] = {static_cast<float>(truth.drift_gain[0]),
                          static_cast<float>(truth.drift_gain[1]),
                          static_cast<float>(truth.drift_gain[2])};
-  const float read2 = static_cast<float>(sensor.read_noise * sensor.read_noise);
-  const float shot = static_cast<float>(sensor.shot_gain);
   const std::int16_t* z = sensor.noise ? bg.bank.data() + NoiseOffset(frame_index) : nullptr;
 
   out->create(height_, width_, CV_8UC3);
@@ -441,140 +638,8 @@ void TactileCamera::RenderInto(const std::optional<Eigen::Vector3d>& ball,
       truth.patch_triangles = patch.mesh.NumTriangles();
       truth.contact_point_sensor = patch.contact_point;
       truth.contact_normal_sensor = patch.contact_normal;
-
-      // Project the patch (true camera). The ROI is the bounding box of the projected vertices.
-      const std::size_t nv = patch.mesh.vertices.size();
-      std::vector<Eigen::Vector2d> uv(nv);
-      double u_lo = kInf, v_lo = kInf, u_hi = -kInf, v_hi = -kInf;
-      for (std::size_t v = 0; v < nv; ++v) {
-        uv[v] = bg.true_camera.ProjectUnchecked(bg.cam_from_sensor * patch.mesh.vertices[v]);
-        u_lo = std::min(u_lo, uv[v].x());
-        u_hi = std::max(u_hi, uv[v].x());
-        v_lo = std::min(v_lo, uv[v].y());
-        v_hi = std::max(v_hi, uv[v].y());
-      }
-      const int x0 = std::max(0, static_cast<int>(std::floor(u_lo)) - 1);
-      const int y0 = std::max(0, static_cast<int>(std::floor(v_lo)) - 1);
-      const int x1 = std::min(width_ - 1, static_cast<int>(std::ceil(u_hi)) + 1);
-      const int y1 = std::min(height_ - 1, static_cast<int>(std::ceil(v_hi)) + 1);
-      if (x1 >= x0 && y1 >= y0) {
-        truth.roi = cv::Rect(x0, y0, x1 - x0 + 1, y1 - y0 + 1);
-        const int rw = truth.roi.width, rh = truth.roi.height;
-        // Closest patch hit per ROI pixel, starting from what hides the patch there: a fin, or
-        // gel the patch does not replace. Each refined triangle is tested against the pixels
-        // inside its projected bounding box (the triangles are about a pixel in size) with the
-        // exact watertight ray test: a z-buffer with ray-traced depths, no BVH to build.
-        std::vector<double> best_t(static_cast<std::size_t>(rw) * rh, -1.0);
-        std::vector<int> best_tri(best_t.size(), -1);
-        std::vector<double> best_b1(best_t.size()), best_b2(best_t.size());
-        std::vector<RaySetup> setup(best_t.size());
-        for (int y = y0; y <= y1; ++y) {
-          for (int x = x0; x <= x1; ++x) {
-            const int i = y * width_ + x;
-            const std::size_t r = static_cast<std::size_t>(y - y0) * rw + (x - x0);
-            const std::uint8_t kind = bg.kind[i];
-            if (kind == kOutside) continue;  // best_t < 0: never hit
-            double limit = bg.t_fin[i];
-            if (kind == kGel && patch.replaced[bg.tri_gel[i]] == 0)
-              limit = std::min(limit, bg.t_gel[i]);
-            best_t[r] = limit;
-            setup[r] = MakeRaySetup(bg.dir[i]);
-          }
-        }
-        constexpr double kMargin = 0.05;  // px; the projection is not linear over a triangle
-        for (int t = 0; t < patch.mesh.NumTriangles(); ++t) {
-          const Eigen::Vector3i& f = patch.mesh.triangles[t];
-          const Eigen::Vector2d& a = uv[f[0]];
-          const Eigen::Vector2d& b = uv[f[1]];
-          const Eigen::Vector2d& c = uv[f[2]];
-          const int px0 =
-              std::max(x0, static_cast<int>(std::ceil(std::min({a.x(), b.x(), c.x()}) - kMargin)));
-          const int px1 =
-              std::min(x1, static_cast<int>(std::floor(std::max({a.x(), b.x(), c.x()}) + kMargin)));
-          const int py0 =
-              std::max(y0, static_cast<int>(std::ceil(std::min({a.y(), b.y(), c.y()}) - kMargin)));
-          const int py1 =
-              std::min(y1, static_cast<int>(std::floor(std::max({a.y(), b.y(), c.y()}) + kMargin)));
-          for (int y = py0; y <= py1; ++y) {
-            for (int x = px0; x <= px1; ++x) {
-              const std::size_t r = static_cast<std::size_t>(y - y0) * rw + (x - x0);
-              if (best_t[r] < 0.0) continue;
-              double th, b1, b2;
-              if (!HitTriangle(setup[r], bg.origin, patch.mesh.vertices[f[0]],
-                               patch.mesh.vertices[f[1]], patch.mesh.vertices[f[2]], &th, &b1,
-                               &b2)) {
-                continue;
-              }
-              if (th > best_t[r] || (th == best_t[r] && (best_tri[r] < 0 || t > best_tri[r])))
-                continue;
-              best_t[r] = th;
-              best_tri[r] = t;
-              best_b1[r] = b1;
-              best_b2[r] = b2;
-            }
-          }
-        }
-
-        const cv::Size size = truth.roi.size();
-        truth.contact_mask = cv::Mat::zeros(size, CV_8U);
-        truth.deformed_mask = cv::Mat::zeros(size, CV_8U);
-        truth.rho = cv::Mat(size, CV_64F, cv::Scalar(kNaN));
-        truth.indentation = cv::Mat(size, CV_64F, cv::Scalar(kNaN));
-        truth.points = cv::Mat(size, CV_64FC3, cv::Scalar::all(kNaN));
-        truth.normals = cv::Mat(size, CV_64FC3, cv::Scalar::all(kNaN));
-        const double contact_p = std::max(builder.options().elastic_length, 1e-9);
-        for (int y = y0; y <= y1; ++y) {
-          for (int x = x0; x <= x1; ++x) {
-            const int i = y * width_ + x;
-            const std::uint8_t kind = bg.kind[i];
-            if (kind == kOutside) continue;
-            ++roi_pixels;
-            const int ry = y - y0, rx = x - x0;
-            const std::size_t r = static_cast<std::size_t>(ry) * rw + rx;
-            const bool gel_replaced = kind == kGel && patch.replaced[bg.tri_gel[i]] != 0;
-            const int tri = best_tri[r];
-            // A hit on an undisplaced part of a replaced triangle looks like the background.
-            const bool use_patch =
-                tri >= 0 && (patch.triangle_displaced[tri] != 0 || !gel_replaced);
-            if (!use_patch) {
-              if (kind == kGel) {
-                const Eigen::Vector3d p = bg.origin + bg.t_gel[i] * bg.dir[i];
-                const Eigen::Vector3d n = bg.normal0[i].cast<double>();
-                truth.rho.at<double>(ry, rx) = bg.t_gel[i];
-                truth.indentation.at<double>(ry, rx) = 0.0;
-                truth.points.at<cv::Vec3d>(ry, rx) = cv::Vec3d(p.x(), p.y(), p.z());
-                truth.normals.at<cv::Vec3d>(ry, rx) = cv::Vec3d(n.x(), n.y(), n.z());
-              }
-              continue;  // the whole-image pass already wrote the background signal
-            }
-            const Eigen::Vector3i& f = patch.mesh.triangles[tri];
-            const double b1 = best_b1[r], b2 = best_b2[r], b0 = 1.0 - b1 - b2;
-            const double delta = b0 * patch.displacement[f[0]] + b1 * patch.displacement[f[1]] +
-                                 b2 * patch.displacement[f[2]];
-            const double pen = b0 * patch.penetration[f[0]] + b1 * patch.penetration[f[1]] +
-                               b2 * patch.penetration[f[2]];
-            const Eigen::Vector3d point = bg.origin + best_t[r] * bg.dir[i];
-            const Eigen::Vector3d normal =
-                (b0 * patch.mesh.normals[f[0]] + b1 * patch.mesh.normals[f[1]] +
-                 b2 * patch.mesh.normals[f[2]])
-                    .normalized();
-            const Eigen::Array3d radiance = lighting_->Shade(point, normal, -bg.dir[i]);
-            float signal[3];
-            for (int c = 0; c < 3; ++c) {
-              signal[c] = static_cast<float>((bg.exposure * radiance[c] + sensor.ambient_dn[c]) *
-                                             bg.vignette[i]);
-            }
-            const std::size_t j = 3 * static_cast<std::size_t>(i);
-            WritePixel(signal, gain, z ? z + j : nullptr, read2, shot, dst + j);
-            truth.rho.at<double>(ry, rx) = best_t[r];
-            truth.indentation.at<double>(ry, rx) = delta;
-            truth.points.at<cv::Vec3d>(ry, rx) = cv::Vec3d(point.x(), point.y(), point.z());
-            truth.normals.at<cv::Vec3d>(ry, rx) = cv::Vec3d(normal.x(), normal.y(), normal.z());
-            if (pen >= contact_p) truth.contact_mask.at<std::uint8_t>(ry, rx) = 255;
-            if (delta > kDeformedThreshold) truth.deformed_mask.at<std::uint8_t>(ry, rx) = 255;
-          }
-        }
-      }
+      const double contact_p = std::max(builder.options().elastic_length, 1e-9);
+      roi_pixels = PatchRender(*this, patch, contact_p, gain, z, dst, &truth).Render();
       stats_.last_roi_seconds = SecondsSince(phase);
     }
   }

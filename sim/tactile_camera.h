@@ -31,8 +31,8 @@
 // per-pixel random draws; the background's shot noise uses its drift-free level, < 1% off), then
 // re-renders only the pixels in the projected bounding box of the displaced patch: each refined
 // triangle is tested against the pixels its projection covers with an exact watertight ray test
-// (a z-buffer with ray-traced depths), and the visible hits are shaded. About 1 ms per no-contact
-// frame and 4 ms per press frame on one core at 640x480 (bench/bench_sim_camera).
+// (a z-buffer with ray-traced depths), and the visible hits are shaded. Its speed:
+// bench/bench_sim_camera, figures in docs/benchmarks.md.
 //
 // Images: cv::Mat CV_8UC3 in OpenCV's BGR channel order (cv::imwrite writes the right colours);
 // "red" is channel 2, "blue" channel 0.
@@ -151,6 +151,7 @@ class TactileCamera {
  private:
   friend class SimGroundTruth;
   struct Background;
+  class PatchRender;  // RenderInto's re-rendered region (tactile_camera.cc)
 
   enum PixelKind : std::uint8_t { kOutside = 0, kGel = 1, kFin = 2, kNothing = 3 };
 

@@ -149,9 +149,9 @@ struct VirtualCncOptions {
   // Largest per-axis belief error (mm) when position is lost (LosePositionOnReset).
   double lost_position_max_mm = 0.5;
   // Executed motion pieces kept for TruePosition(), and in instant mode as many jumps of the
-  // machine clock (one per executed motion batch and per 50 ms dwell step: about 9 per
-  // calibration probe with a 0.3 s settle dwell, see VirtualCncStats::clock_jumps). Older times
-  // throw std::out_of_range once either was evicted.
+  // machine clock (one per executed motion batch and per 50 ms dwell step, as GRBL's
+  // DWELL_TIME_STEP; VirtualCncStats::clock_jumps counts them). Older times throw
+  // std::out_of_range once either was evicted.
   std::size_t history_pieces = 1u << 15;
   std::uint64_t seed = 1;  // fault-injection randomness
 
@@ -181,6 +181,7 @@ struct VirtualCncStats {
   std::uint64_t boots = 0;   // power-ups
   std::uint64_t blocks_planned = 0;
   std::uint64_t clock_jumps = 0;  // instant mode: machine-clock jumps recorded so far
+  std::uint64_t unheard = 0;      // replies lost because no host had the port open (reset_on_open)
 };
 
 class VirtualCnc {
@@ -237,6 +238,9 @@ class VirtualCnc {
   // std::runtime_error if the pty cannot be created. No effect when plugged.
   void Replug();
   bool Plugged() const;
+  // Whether a host has the port open (as the I/O thread last saw it: a close is noticed within
+  // a poll interval). Lets a test wait for the controller to see a host come or go.
+  bool HostAttached() const;
   // The next queued motion block stops dead after covering `fraction` of its length and the
   // controller raises ALARM:code. Codes 1 and 2 are critical events (reset required); other
   // codes are followed by an automatic reset (welcome), as an abort is.

@@ -198,6 +198,10 @@ class VirtualCnc::Impl {
     std::lock_guard<std::mutex> lk(mu_);
     return plugged_;
   }
+  bool HostAttached() const {
+    std::lock_guard<std::mutex> lk(mu_);
+    return plugged_ && host_open_;
+  }
   void RaiseAlarmDuringNextMove(int code, double fraction) {
     if (code < 1 || code > 255 || !(fraction >= 0.0 && fraction <= 1.0)) {
       throw std::invalid_argument(

@@ -5,7 +5,7 @@
 
 #include <opencv2/imgcodecs.hpp>
 
-#include "geometry/hash.h"
+#include "base/hash.h"
 
 namespace gs360 {
 namespace {

@@ -50,7 +50,7 @@ EncodedFrame EncodeFrame(const cv::Mat& image, const PngOptions& options = {});
 // Decodes a PNG blob; returns an empty Mat if the bytes are not a decodable PNG.
 cv::Mat DecodeFrame(std::span<const std::uint8_t> png);
 
-// Checksum of a stored blob: geometry/hash.h's 64-bit hash, 16 lower-case hex digits.
+// Checksum of a stored blob: base/hash.h's 64-bit hash, 16 lower-case hex digits.
 std::string BlobChecksum(std::span<const std::uint8_t> blob);
 
 }  // namespace gs360

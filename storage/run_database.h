@@ -48,8 +48,8 @@ namespace gs360 {
 // - kNormal: WAL + synchronous=NORMAL never corrupts the file but can lose the last few commits
 //   (those not yet checkpointed or synced), so some captured probes would be probed again.
 // - kFull (default): every commit is synced to the WAL before it returns; nothing committed is
-//   lost. It costs one fsync per commit (~1-20 ms), small against a press (~4 s per probe), and
-//   the overnight run's promise is "resume losing nothing".
+//   lost. It costs one fsync per commit, small against a press (docs/benchmarks.md has both),
+//   and the overnight run's promise is "resume losing nothing".
 enum class SyncMode { kNormal, kFull };
 
 struct RunDatabaseOptions {

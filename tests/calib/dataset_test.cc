@@ -4,8 +4,8 @@
 #include <cstring>
 #include <set>
 
+#include "base/hash.h"
 #include "calib/dataset.h"
-#include "geometry/hash.h"
 #include "recon/features.h"
 
 using namespace gs360;

@@ -11,8 +11,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "base/hash.h"
 #include "calib/train.h"
-#include "geometry/hash.h"
 
 namespace gs360 {
 namespace {

@@ -168,6 +168,28 @@ TEST_CASE(
 
   o.from_stage = "nonsense";
   CHECK_THROWS_WITH(RunCalibration(db, s.run_id, s.inputs, o), Catch::Contains("nonsense"));
+
+  // --to pose stops there: no model, the later stages not even looked up.
+  o.from_stage.clear();
+  o.to_stage = "pose";
+  CalibrationResult to = RunCalibration(db, s.run_id, s.inputs, o);
+  REQUIRE(to.stages.size() == 3);
+  CHECK(to.stages.back().stage == "pose");
+  CHECK(to.model_path.empty());
+
+  // --only train runs train again on cached inputs, and nothing after it.
+  o.to_stage.clear();
+  o.only_stage = "train";
+  to = RunCalibration(db, s.run_id, s.inputs, o);
+  REQUIRE(to.stages.back().stage == "train");
+  CHECK_FALSE(to.stages.back().cached);
+  for (std::size_t k = 0; k + 1 < to.stages.size(); ++k) CHECK(to.stages[k].cached);
+  // ... and refuses to compute an input that is not cached, naming it and the --to to run.
+  o.render.margin_px += 1.0;
+  CHECK_THROWS_WITH(RunCalibration(db, s.run_id, s.inputs, o),
+                    Catch::Contains("input render") && Catch::Contains("--to render"));
+  o.only_stage = "bogus";
+  CHECK_THROWS_WITH(RunCalibration(db, s.run_id, s.inputs, o), Catch::Contains("only_stage"));
   std::filesystem::remove_all(s.dir);
 }
 

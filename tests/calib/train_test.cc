@@ -324,8 +324,9 @@ TEST_CASE("TrainOptions::Check names the bad field", "[train]") {
         std::string::npos);
   CHECK(CheckMessage([](TrainOptions& o) { o.patience = -1; }).find("patience") !=
         std::string::npos);
-  CHECK(CheckMessage([](TrainOptions& o) { o.threads = 0; }).find("threads = 0") !=
-        std::string::npos);
+  CHECK(CheckMessage([](TrainOptions& o) {
+          o.threads = 0;
+        }).find("threads must be in [1, 256], got 0") != std::string::npos);
   CHECK(CheckMessage([](TrainOptions& o) { o.batch_size = -5; }).find("-5") != std::string::npos);
 
   const Data d = SmoothFunction(10, 1);

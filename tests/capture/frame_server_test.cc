@@ -10,6 +10,7 @@
 
 #include "capture/frame_server.h"
 #include "capture/frame_source.h"
+#include "tests/wait.h"
 
 namespace {
 
@@ -59,10 +60,7 @@ TEST_CASE("socket frame source receives the server's frames intact", "[capture][
   }
   // The server counts a reply once its last byte is written, which can be just after the client
   // has read it: wait for the count (bounded), then it must be exactly the five requested.
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(2);
-  while (server.FramesServed() < 5 && std::chrono::steady_clock::now() < deadline) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(1));
-  }
+  gs360::test::WaitUntil([&] { return server.FramesServed() >= 5; }, std::chrono::seconds(2));
   CHECK(server.FramesServed() == 5);
 }
 

@@ -20,6 +20,7 @@
 #include "geometry/mesh.h"
 #include "geometry/shapes.h"
 #include "storage/run_database.h"
+#include "tests/wait.h"
 
 using namespace gs360;
 using Json = nlohmann::json;
@@ -42,12 +43,13 @@ httplib::Result PostJson(httplib::Client& c, const std::string& path, const Json
 template <typename Pred>
 Json WaitRun(httplib::Client& c, std::int64_t id, Pred pred) {
   Json run;
-  for (int i = 0; i < 1200; ++i) {
+  const auto done = [&] {
     run = Body(c.Get(("/api/v1/runs/" + std::to_string(id)).c_str()));
-    if (pred(run)) return run;
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    return pred(run);
+  };
+  if (!test::WaitUntil(done, std::chrono::seconds(60))) {
+    FAIL("timed out waiting; last view " << run.dump());
   }
-  FAIL("timed out waiting; last view " << run.dump());
   return run;
 }
 
@@ -183,9 +185,7 @@ TEST_CASE("api: plan, start, pause and resume a run, and two resumes at once get
     }
     return false;
   };
-  for (int i = 0; i < 500 && !seen_done(); ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  }
+  test::WaitUntil(seen_done, std::chrono::seconds(10));
   stop_stream = true;
   d.daemon->events().Publish("log", {{"run", 1}});  // the stream's next chunk ends it
   stream.join();
@@ -320,6 +320,15 @@ TEST_CASE("api: bad requests get 400 naming the field, and the daemon keeps serv
   r = PostJson(c, "/api/v1/runs/1/calibrate", {{"from", "everything"}});
   CHECK(r->status == 400);
   CHECK(Body(r)["error"]["field"] == "from");
+  r = PostJson(c, "/api/v1/runs/1/calibrate", {{"to", "the end"}});
+  CHECK(r->status == 400);
+  CHECK(Body(r)["error"]["field"] == "to");
+  r = PostJson(c, "/api/v1/runs/1/calibrate", {{"only", 3}});
+  CHECK(r->status == 400);
+  CHECK(Body(r)["error"]["field"] == "only");
+  r = PostJson(c, "/api/v1/runs/1/calibrate", {{"only", "train"}, {"to", "export"}});
+  CHECK(r->status == 400);
+  CHECK_THAT(Body(r)["error"]["message"].get<std::string>(), Catch::Contains("only_stage"));
   CHECK(c.Get("/api/v1/info")->status == 200);
   CHECK(Body(c.Get("/api/v1/runs"))["runs"].size() == 1);
 }

@@ -20,6 +20,7 @@
 #include "daemon_fixture.h"
 #include "recon/model_bundle.h"
 #include "storage/run_database.h"
+#include "tests/wait.h"
 
 extern char** environ;
 
@@ -84,12 +85,12 @@ Json Status(const std::filesystem::path& dir, const std::string& url) {
 template <typename Pred>
 Json WaitStatus(const std::filesystem::path& dir, const std::string& url, Pred pred) {
   Json run;
-  for (int i = 0; i < 600; ++i) {
+  const auto done = [&] {
     run = Status(dir, url);
-    if (pred(run)) return run;
-    std::this_thread::sleep_for(std::chrono::milliseconds(100));
-  }
-  FAIL("timed out; last status " << run.dump());
+    return pred(run);
+  };
+  if (!test::WaitUntil(done, std::chrono::seconds(60)))
+    FAIL("timed out; last status " << run.dump());
   return run;
 }
 
@@ -131,13 +132,14 @@ TEST_CASE(
   // Power cut, as far as the daemon knows.
   daemon->Kill();
   // Let the controller finish what it had queued, then note where it stands.
-  Eigen::Vector3d before = f.rig->cnc().TruePositionNow();
-  for (int i = 0; i < 100; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-    const Eigen::Vector3d now = f.rig->cnc().TruePositionNow();
-    if ((now - before).norm() < 1e-9) break;
-    before = now;
-  }
+  REQUIRE(test::WaitUntil(
+      [&] {
+        const auto& cnc = f.rig->cnc();
+        return cnc.PlannerBlocksQueued() == 0 &&
+               cnc.TrueSpeed(std::chrono::steady_clock::now()) == 0.0;
+      },
+      std::chrono::seconds(5)));
+  const Eigen::Vector3d before = f.rig->cnc().TruePositionNow();
   daemon = test::StartDaemonProcess(f);
   run = Status(dir, daemon->url());
   CHECK(run["state"] == "interrupted");  // never "running" after its daemon died
@@ -170,6 +172,11 @@ TEST_CASE(
     CHECK(truth.unverified == 0);
   }
 
+  // Up to the pose only: the later stages are skipped, and no model is claimed.
+  r = Gs360(dir, daemon->url(), {"calibrate", "1", "--to", "pose"});
+  INFO(r.out << r.err);
+  REQUIRE(r.exit_code == 0);
+  CHECK_THAT(r.out, Catch::Contains("no model exported") && Catch::Contains("skipped"));
   r = Gs360(dir, daemon->url(), {"calibrate", "1", "--max-epochs", "4"});
   INFO(r.out << r.err);
   REQUIRE(r.exit_code == 0);

@@ -18,6 +18,7 @@
 #include "cli/daemon_client.h"
 #include "daemon_fixture.h"
 #include "storage/run_database.h"
+#include "tests/wait.h"
 
 using namespace gs360;
 using Json = nlohmann::json;
@@ -36,12 +37,11 @@ RunDatabase ReadOnly(const std::filesystem::path& path) {
 template <typename Pred>
 Json WaitFor(cli::DaemonClient& client, std::int64_t id, Pred pred) {
   Json run;
-  for (int i = 0; i < 6000; ++i) {
+  const auto done = [&] {
     run = client.Get("/api/v1/runs/" + std::to_string(id));
-    if (pred(run)) return run;
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
-  FAIL("timed out; last view " << run.dump());
+    return pred(run);
+  };
+  if (!test::WaitUntil(done, std::chrono::minutes(5))) FAIL("timed out; last view " << run.dump());
   return run;
 }
 

@@ -12,6 +12,7 @@
 #include "gcode/probe_program.h"
 #include "rig_fixture.h"
 #include "storage/run_database.h"
+#include "tests/wait.h"
 
 using namespace gs360;
 using namespace std::chrono_literals;
@@ -235,9 +236,7 @@ TEST_CASE("an earlier session's bytes on the line are discarded, not taken as re
   }
   // Replies the earlier host never read: an ok, an error, a status report with a made-up MPos.
   f.rig->cnc().SendRaw("ok\r\nerror:9\r\n<Idle|MPos:1.000,2.000,3.000|FS:0,0>\r\n");
-  for (int i = 0; i < 100 && f.rig->cnc().PendingOutputBytes() > 0; ++i) {
-    std::this_thread::sleep_for(10ms);
-  }
+  test::WaitUntil([&] { return f.rig->cnc().PendingOutputBytes() == 0; }, 1s);
   GrblClientOptions o;
   o.status_poll_interval = 0ms;
   auto client = GrblClient::ForUri(f.rig->PtyPath(), TransportOptions{}, o);

@@ -8,6 +8,7 @@
 
 #include "rig_fixture.h"
 #include "storage/run_database.h"
+#include "tests/wait.h"
 
 using namespace gs360;
 using gs360::test::RigFixture;
@@ -238,9 +239,7 @@ TEST_CASE("the engine runs on its own thread and can be stopped from another", "
   engine.Start(run_id);
   CHECK(engine.Running());
   CHECK_THROWS_AS(engine.Start(run_id), std::logic_error);
-  for (int i = 0; i < 600 && engine.Progress().counts.captured < 3; ++i) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(50));
-  }
+  test::WaitUntil([&] { return engine.Progress().counts.captured >= 3; }, std::chrono::seconds(30));
   engine.RequestStop();
   const RunReport report = engine.Wait();
   CHECK_FALSE(engine.Running());

@@ -12,6 +12,8 @@
 #include <cstdlib>
 #include <stdexcept>
 
+#include "tests/wait.h"
+
 namespace gs360 {
 
 namespace {
@@ -358,12 +360,7 @@ bool FakeGrbl::InAlarm() const {
 }
 
 bool FakeGrbl::WaitUntil(const std::function<bool()>& pred, std::chrono::milliseconds timeout) {
-  const auto deadline = Clock::now() + timeout;
-  while (Clock::now() < deadline) {
-    if (pred()) return true;
-    std::this_thread::sleep_for(std::chrono::milliseconds(2));
-  }
-  return pred();
+  return test::WaitUntil(pred, timeout);
 }
 
 }  // namespace gs360

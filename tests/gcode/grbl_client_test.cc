@@ -16,6 +16,7 @@
 #include <thread>
 #include <vector>
 
+#include "base/format.h"
 #include "gcode/grbl_client.h"
 #include "tests/gcode/fake_grbl.h"
 

@@ -11,6 +11,7 @@
 
 #include "gcode/grbl_client.h"
 #include "sim/virtual_cnc.h"
+#include "tests/wait.h"
 
 using namespace std::chrono_literals;
 using Clock = std::chrono::steady_clock;
@@ -135,9 +136,7 @@ TEST_CASE("client and virtual CNC: a soft-limit ALARM:2 before the ok, reset, re
 
   const gs360::GrblHandle outside = client.Send("G53 G0 X10.000 Y-5.000");  // beyond X travel
   const gs360::GrblHandle next = client.Send("G53 G0 X-5.000");
-  const auto deadline = Clock::now() + 5s;
-  while (!client.ResetRequired() && Clock::now() < deadline) std::this_thread::sleep_for(5ms);
-  REQUIRE(client.ResetRequired());
+  REQUIRE(gs360::test::WaitUntil([&] { return client.ResetRequired(); }, 5s));
   CHECK(client.LastAlarm() == 2);
   CHECK(client.Alarmed());
   CHECK_FALSE(outside.Done());  // GRBL holds the line's reply until the reset
@@ -151,9 +150,7 @@ TEST_CASE("client and virtual CNC: a soft-limit ALARM:2 before the ok, reset, re
   CHECK(next.Wait(2s).kind == GrblReplyKind::kReset);  // flushed by the reset, never answered
   CHECK_FALSE(client.PositionTrusted());
   // Alarm after the reset until $X / $H ([MSG:'$H'|'$X' to unlock] follows the welcome).
-  const auto msg_deadline = Clock::now() + 2s;
-  while (!client.Alarmed() && Clock::now() < msg_deadline) std::this_thread::sleep_for(5ms);
-  CHECK(client.Alarmed());
+  CHECK(gs360::test::WaitUntil([&] { return client.Alarmed(); }, 2s));
 
   // A soft limit keeps the position: unlock and re-verify instead of re-homing.
   REQUIRE(client.Unlock().Ok());

@@ -6,7 +6,7 @@
 #include <limits>
 #include <stdexcept>
 
-#include "geometry/hash.h"
+#include "base/hash.h"
 
 namespace gs360 {
 namespace {

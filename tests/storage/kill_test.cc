@@ -15,7 +15,7 @@
 
 #include <opencv2/imgcodecs.hpp>
 
-#include "geometry/hash.h"
+#include "base/hash.h"
 #include "storage/run_database.h"
 #include "tests/storage/kill_writer_common.h"
 #include "tests/storage/storage_test_util.h"

@@ -6,8 +6,8 @@
 #include <cmath>
 #include <numbers>
 
-#include "gcode/plan.h"
-#include "gcode/tour.h"
+#include "plan/plan.h"
+#include "plan/tour.h"
 
 using namespace gs360;
 

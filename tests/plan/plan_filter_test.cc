@@ -5,7 +5,7 @@
 #include <cmath>
 #include <numbers>
 
-#include "gcode/plan.h"
+#include "plan/plan.h"
 
 using namespace gs360;
 using Catch::Matchers::Contains;

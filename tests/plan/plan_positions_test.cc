@@ -6,7 +6,7 @@
 #include <nlohmann/json.hpp>
 #include <numbers>
 
-#include "gcode/plan.h"
+#include "plan/plan.h"
 
 using namespace gs360;
 using Catch::Matchers::Contains;

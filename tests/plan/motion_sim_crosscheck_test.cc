@@ -1,4 +1,4 @@
-// Cross-check of the planner's time model (gcode/motion_estimate.h) against the virtual CNC's
+// Cross-check of the planner's time model (plan/motion_estimate.h) against the virtual CNC's
 // independent implementation of GRBL's planner (sim/grbl_planner.h), which times the simulated
 // machine: the estimate of a run is only as good as this agreement.
 
@@ -6,7 +6,7 @@
 #include <cmath>
 #include <cstdint>
 
-#include "gcode/motion_estimate.h"
+#include "plan/motion_estimate.h"
 #include "sim/grbl_planner.h"
 
 using namespace gs360;

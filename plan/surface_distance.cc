@@ -1,4 +1,4 @@
-#include "gcode/surface_distance.h"
+#include "plan/surface_distance.h"
 
 #include <algorithm>
 #include <cmath>

@@ -1,4 +1,4 @@
-#include "geometry/hash.h"
+#include "base/hash.h"
 
 #include <cstring>
 

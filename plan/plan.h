@@ -31,7 +31,7 @@
 //     along the segment, else through waypoints (out radially to a cylinder that clears the
 //     sensor, around it, and in; or up over the top; whichever is faster).
 //  5. Estimate: per press, the G-code motion (retract, travel, approach, press) planned as the
-//     firmware plans it (gcode/motion_estimate.h), the settle dwell, then the host's time before
+//     firmware plans it (plan/motion_estimate.h), the settle dwell, then the host's time before
 //     it sends the retract (capture_time_s, the status-poll latency, the serial round trip). The
 //     same for the sampling order gives the tour's gain.
 //
@@ -50,13 +50,13 @@
 #include <string_view>
 #include <vector>
 
-#include "gcode/motion_estimate.h"
-#include "gcode/surface_distance.h"
 #include "geometry/bvh.h"
 #include "geometry/fisheye.h"
 #include "geometry/mesh.h"
 #include "geometry/rigid3.h"
 #include "geometry/shapes.h"
+#include "plan/motion_estimate.h"
+#include "plan/surface_distance.h"
 #include "rig/rig_config.h"
 
 namespace gs360 {

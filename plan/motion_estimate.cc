@@ -1,4 +1,4 @@
-#include "gcode/motion_estimate.h"
+#include "plan/motion_estimate.h"
 
 #include <algorithm>
 #include <charconv>

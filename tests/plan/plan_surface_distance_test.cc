@@ -6,7 +6,7 @@
 #include <cstdint>
 #include <limits>
 
-#include "gcode/surface_distance.h"
+#include "plan/surface_distance.h"
 
 using namespace gs360;
 

@@ -3,7 +3,7 @@
 #include <cstdint>
 #include <string>
 
-#include "geometry/hash.h"
+#include "base/hash.h"
 
 TEST_CASE("Hasher is deterministic and sensitive to every byte", "[hash]") {
   std::string data(1000, 'x');

@@ -1,4 +1,4 @@
-#include "gcode/tour.h"
+#include "plan/tour.h"
 
 #include <algorithm>
 #include <cmath>

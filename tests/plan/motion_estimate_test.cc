@@ -1,4 +1,4 @@
-#include "gcode/motion_estimate.h"
+#include "plan/motion_estimate.h"
 
 #include <catch2/catch.hpp>
 #include <cmath>

@@ -1,4 +1,4 @@
-#include "gcode/plan.h"
+#include "plan/plan.h"
 
 #include <algorithm>
 #include <chrono>
@@ -9,10 +9,11 @@
 #include <sstream>
 #include <unordered_map>
 
-#include "gcode/tour.h"
+#include "base/field_error.h"
+#include "base/hash.h"
 #include "geometry/bvh.h"
-#include "geometry/hash.h"
 #include "geometry/sampling.h"
+#include "plan/tour.h"
 #include "rig/rig_shape.h"
 
 namespace gs360 {
@@ -30,7 +31,7 @@ std::string Num(double v) {
 }
 
 [[noreturn]] void BadField(const std::string& field, double value, const std::string& rule) {
-  throw std::invalid_argument("PlanOptions." + field + " " + rule + ", got " + Num(value));
+  ThrowFieldError("PlanOptions." + field, value, rule);
 }
 
 void RequirePositive(const char* field, double v) {
