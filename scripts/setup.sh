@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
 # gs360 set-up: installs the Debian packages the project needs (only the missing ones), builds in
 # Release, then does what was asked:
-#   scripts/setup.sh test    build and run the whole test suite through CTest
+#   scripts/setup.sh test    build and run the whole test suite through CTest, then the
+#                            ASan+UBSan and TSan builds on their selections (scripts/sanitize.sh)
 #   scripts/setup.sh demo    build and run `gs360 demo` (the simulated rig, end to end)
 #   scripts/setup.sh build   install and build only
 # Idempotent: a second run installs nothing and rebuilds only what changed.
-# Environment: BUILD_DIR (default build), JOBS (default nproc), GS360_SKIP_APT=1 to skip apt.
+# Environment: BUILD_DIR (default build), JOBS (default nproc), GS360_SKIP_APT=1 to skip apt,
+# GS360_SANITIZERS=0 to skip the sanitizer builds in test mode.
 set -euo pipefail
 
 mode=${1:-build}
@@ -57,8 +59,11 @@ cmake --build "$build_dir" -j "$jobs"
 case "$mode" in
   build) ;;
   test)
-    cd "$build_dir"
-    ctest --output-on-failure -j "$jobs" "$@"
+    (cd "$build_dir" && ctest --output-on-failure -j "$jobs" "$@")
+    # Then the sanitizer builds and their selections of the tests (scripts/sanitize.sh).
+    if [ "${GS360_SANITIZERS:-1}" != 0 ]; then
+      "$here/scripts/sanitize.sh"
+    fi
     ;;
   demo)
     "$build_dir/cli/gs360" demo "$@"

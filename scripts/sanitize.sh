@@ -1,0 +1,156 @@
+#!/usr/bin/env bash
+# The sanitizer part of `scripts/setup.sh test`, which runs it after the Release suite (it can also
+# be run on its own once the packages are installed):
+#   scripts/sanitize.sh [asan|tsan]...   default: both
+# asan: ASan + UBSan build in build-asan/, tsan: ThreadSanitizer build in build-tsan/ (both beside
+# BUILD_DIR; CMake option GS360_SANITIZE). Each builds only the test executables it runs, then
+# runs its selection below through CTest. Any sanitizer report, in a test or in a process that a
+# test started (gs360d, gs360, the storage kill writer), fails the script.
+# Environment: BUILD_DIR (default build), JOBS (default nproc).
+set -euo pipefail
+
+here=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+build_dir=${BUILD_DIR:-$here/build}
+parent=$(dirname "$build_dir")
+jobs=${JOBS:-$(nproc)}
+
+# ---- The selection: which tests run under which sanitizer, and why. -----------------------------
+# CTest names are "<module>:<TEST_CASE name>"; -R and -E below are regexes on them. The Python,
+# browser and format tests never run here: they exercise no C++ that the C++ tests do not.
+#
+# ASan + UBSan: the unit tests of the libraries, less the few that repeat one workload for
+# minutes (times: under ASan + UBSan on the 2-core VM). Not the cli: and daemon: tests: they run
+# the whole pipeline end to end (1-6 min each under ASan) and would need gs360_cli, gs360_daemon,
+# gs360 and gs360d built a third time; the daemon's code runs under TSan below.
+asan_targets="test_base test_geometry test_storage test_plan test_gcode test_sim test_capture test_recon test_calib"
+asan_include='^(base|geometry|storage|plan|gcode|sim|capture|recon|calib):'
+asan_exclude=(
+  # 230 s: 60 SIGKILLed writer processes; the writer's code runs in the run_database tests.
+  '^storage:SIGKILLed writers never leave a half-written probe$'
+  # 150 s, 38 s: a fine gel mesh pressed many times, a dense sphere; the same code runs in the
+  # smaller recon tests.
+  '^recon:Normal indentation: the gel'
+  '^recon:A dent in a sphere seen from inside'
+  # 100 s, 17 s, 16 s: pose from simulated impressions; the other EstimateCamFromSensor tests
+  # cover the code.
+  '^calib:EstimateCamFromSensor: (simulated impressions|oblique impressions|the bias model)'
+  # 75 s: two whole calibrations; it runs under TSan (the parallel stages), and each stage has
+  # its own unit tests here.
+  '^calib:calibration stages: a second run is all cache'
+  # 31 s, 17 s, 15 s, 11 s: lens calibrations on many rendered boards; "rejects blank images"
+  # and the checkerboard corner test run the same code on fewer.
+  '^calib:CalibrateIntrinsics (recovers a perturbed|rejects boards only at the centre|rejects too few)'
+  '^sim:checkerboard: cv::fisheye::calibrate recovers'
+  # 66 s, 16 s: brute force against the BVH over thousands of rays; the other Bvh tests cover
+  # the code.
+  '^geometry:Bvh (closest hit equals brute force|gives exactly the brute-force)'
+  # 27 s, 20 s: every shape rendered, renders repeated; the other tactile camera tests render.
+  '^sim:tactile camera: (every built-in shape|the same seed and calls)'
+  # 25 s, 17 s, 15 s: whole plans of thousands of candidates; the smaller plan tests run the
+  # same filters.
+  '^plan:(A plan counts every candidate once|The tour is a deterministic|Unreachable points are dropped)'
+)
+# With these left out the ASan + UBSan tests take about 1,100 s of CPU on 1,730 (under 10 min on
+# two cores, loaded).
+# TSan: the tests whose code runs threads, by name: a TSan process takes 2-5 s to start and a
+# run on the virtual rig ~1 min, so rather than whole modules these, one or a few per threaded
+# part (the others exercise the same threads again, or none):
+tsan_targets="test_storage test_gcode test_sim test_capture test_recon test_calib test_daemon"
+tsan_tests=(
+  # the daemon: the event hub's waiters; an in-process daemon's engine thread paused and resumed
+  # from the HTTP threads, two resumes at once; gs360d stopped by SIGTERM. (Not the run_engine
+  # tests "the engine runs on its own thread..." and "stop, pause and cancel...": their
+  # in-process virtual camera renders too slowly under TSan, every press times out waiting for
+  # its frames and the test fails with no TSan report.)
+  '^daemon:the event hub delivers in order'
+  '^daemon:api: plan, start, pause and resume a run'
+  '^daemon:gs360d on SIGTERM'
+  # storage: status readers on their own connections while the writer commits
+  '^storage:readers on other connections'
+  # the GRBL client's reader thread against the virtual CNC's firmware and I/O threads
+  '^gcode:client and virtual CNC:'
+  '^gcode:the client streams over TCP'
+  '^sim:Fault: '
+  # the capture frame server and its socket client
+  '^capture:socket frame source'
+  # recon: the threaded Poisson solver, the surface map's parallel rows
+  '^recon:DST-I Poisson solver is safe from several threads'
+  '^recon:Surface map of a flat plate'
+  # calibration: the parallel stages of two whole calibrations (the longest, ~4 min), the
+  # training and pose thread pools
+  '^calib:calibration stages:'
+  '^calib:Train is reproducible for a seed and thread count'
+  '^calib:Train handles tiny batches and more threads than samples'
+  '^calib:EstimateCamFromSensor: exact projections'
+  # the virtual camera's parallel render
+  '^sim:tactile camera: the same seed and calls give identical images'
+)
+# -------------------------------------------------------------------------------------------------
+
+join() {
+  local IFS='|'
+  echo "$*"
+}
+
+# run_sanitized NAME SANITIZE "TARGETS" INCLUDE [EXCLUDE...]
+run_sanitized() {
+  local name=$1 sanitize=$2 targets=$3 include=$4
+  shift 4
+  local dir=$parent/build-$name
+  local logs=$dir/sanitizer-reports
+  local start=$SECONDS
+  echo "sanitize: $name (-fsanitize=$sanitize) in $dir"
+  # Warnings are the Release build's job: at -O1 with instrumentation GCC 12 gives other, false,
+  # ones.
+  cmake -S "$here" -B "$dir" -DCMAKE_BUILD_TYPE=Release -DGS360_SANITIZE="$sanitize" \
+    -DGS360_WERROR=OFF
+  # shellcheck disable=SC2086
+  cmake --build "$dir" -j "$jobs" --target $targets
+  local built=$SECONDS
+  rm -rf "$logs" && mkdir -p "$logs"
+  local exclude=()
+  [ $# -eq 0 ] || exclude=(-E "$(join "$@")")
+  local rc=0
+  (
+    cd "$dir"
+    # Reports go to files (log_path), so that those of child processes, whose stderr the tests
+    # keep in temporary folders, are seen too.
+    common="halt_on_error=1:log_path=$logs/report"
+    export ASAN_OPTIONS="$common:detect_leaks=1:check_initialization_order=1"
+    export LSAN_OPTIONS="suppressions=$here/tests/lsan.supp:print_suppressions=0"
+    export UBSAN_OPTIONS="$common:print_stacktrace=1"
+    export TSAN_OPTIONS="$common:suppressions=$here/tests/tsan.supp:second_deadlock_stack=1"
+    ctest --output-on-failure -j "$jobs" -R "$include" "${exclude[@]}"
+  ) || rc=$?
+  local reports=("$logs"/report.*)
+  if [ -e "${reports[0]}" ]; then
+    echo "sanitize: $name: ${#reports[@]} sanitizer report(s):" >&2
+    for r in "${reports[@]}"; do
+      echo "---- $r" >&2
+      cat "$r" >&2
+    done
+    rc=1
+  fi
+  echo "sanitize: $name: build $((built - start)) s, tests $((SECONDS - built)) s"
+  return $rc
+}
+
+which=("$@")
+[ ${#which[@]} -gt 0 ] || which=(asan tsan)
+status=0
+for w in "${which[@]}"; do
+  case "$w" in
+    asan)
+      run_sanitized asan address,undefined "$asan_targets" "$asan_include" "${asan_exclude[@]}" ||
+        status=1
+      ;;
+    tsan)
+      run_sanitized tsan thread "$tsan_targets" "$(join "${tsan_tests[@]}")" || status=1
+      ;;
+    *)
+      echo "sanitize: unknown '$w' (expected asan or tsan)" >&2
+      exit 2
+      ;;
+  esac
+done
+exit $status
