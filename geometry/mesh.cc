@@ -5,7 +5,6 @@
 
 #include <algorithm>
 #include <array>
-#include <assimp/Exporter.hpp>
 #include <assimp/Importer.hpp>
 #include <cmath>
 #include <cstdio>
@@ -16,6 +15,7 @@
 #include <unordered_map>
 
 #include "base/hash.h"
+#include "geometry/assimp_export.h"
 
 namespace gs360 {
 namespace {
@@ -797,48 +797,38 @@ TriangleMesh LoadMesh(const std::filesystem::path& path, const MeshLoadOptions& 
 
 namespace {
 
-// Exports `mesh` with assimp's exporter `format` ("stlb", "stl", "objnomtl", "ply"). The scene
-// owns its arrays (aiScene's destructor frees them with delete[]); coordinates become float32
-// (assimp's ai_real).
+// Exports `mesh` with assimp's exporter `format` ("stlb", "stl", "objnomtl", "ply");
+// coordinates become float32 (assimp's ai_real).
 void Export(const std::filesystem::path& path, const TriangleMesh& mesh, const char* format) {
-  aiScene scene;
-  scene.mRootNode = new aiNode();
-  scene.mRootNode->mNumMeshes = 1;
-  scene.mRootNode->mMeshes = new unsigned int[1]{0};
-  scene.mNumMaterials = 1;
-  scene.mMaterials = new aiMaterial* [1] { new aiMaterial() };
-  scene.mNumMeshes = 1;
-  scene.mMeshes = new aiMesh* [1] { new aiMesh() };
-  aiMesh& out = *scene.mMeshes[0];
-  out.mPrimitiveTypes = aiPrimitiveType_TRIANGLE;
-  out.mNumVertices = static_cast<unsigned int>(mesh.vertices.size());
-  out.mVertices = new aiVector3D[mesh.vertices.size()];
-  for (std::size_t i = 0; i < mesh.vertices.size(); ++i) {
-    const Eigen::Vector3d& v = mesh.vertices[i];
-    out.mVertices[i] = aiVector3D(static_cast<ai_real>(v.x()), static_cast<ai_real>(v.y()),
-                                  static_cast<ai_real>(v.z()));
-  }
-  if (mesh.HasNormals()) {
-    out.mNormals = new aiVector3D[mesh.normals.size()];
-    for (std::size_t i = 0; i < mesh.normals.size(); ++i) {
-      const Eigen::Vector3d& n = mesh.normals[i];
-      out.mNormals[i] = aiVector3D(static_cast<ai_real>(n.x()), static_cast<ai_real>(n.y()),
-                                   static_cast<ai_real>(n.z()));
+  auto fill = [&](aiMesh& out) {
+    out.mPrimitiveTypes = aiPrimitiveType_TRIANGLE;
+    out.mNumVertices = static_cast<unsigned int>(mesh.vertices.size());
+    out.mVertices = new aiVector3D[mesh.vertices.size()];
+    for (std::size_t i = 0; i < mesh.vertices.size(); ++i) {
+      const Eigen::Vector3d& v = mesh.vertices[i];
+      out.mVertices[i] = aiVector3D(static_cast<ai_real>(v.x()), static_cast<ai_real>(v.y()),
+                                    static_cast<ai_real>(v.z()));
     }
-  }
-  out.mNumFaces = static_cast<unsigned int>(mesh.triangles.size());
-  out.mFaces = new aiFace[mesh.triangles.size()];
-  for (std::size_t t = 0; t < mesh.triangles.size(); ++t) {
-    const Eigen::Vector3i& f = mesh.triangles[t];
-    out.mFaces[t].mNumIndices = 3;
-    out.mFaces[t].mIndices =
-        new unsigned int[3]{static_cast<unsigned int>(f[0]), static_cast<unsigned int>(f[1]),
-                            static_cast<unsigned int>(f[2])};
-  }
-  Assimp::Exporter exporter;
-  if (exporter.Export(&scene, format, path.string()) != aiReturn_SUCCESS) {
-    throw MeshError("cannot write " + Quoted(path) + ": " + exporter.GetErrorString());
-  }
+    if (mesh.HasNormals()) {
+      out.mNormals = new aiVector3D[mesh.normals.size()];
+      for (std::size_t i = 0; i < mesh.normals.size(); ++i) {
+        const Eigen::Vector3d& n = mesh.normals[i];
+        out.mNormals[i] = aiVector3D(static_cast<ai_real>(n.x()), static_cast<ai_real>(n.y()),
+                                     static_cast<ai_real>(n.z()));
+      }
+    }
+    out.mNumFaces = static_cast<unsigned int>(mesh.triangles.size());
+    out.mFaces = new aiFace[mesh.triangles.size()];
+    for (std::size_t t = 0; t < mesh.triangles.size(); ++t) {
+      const Eigen::Vector3i& f = mesh.triangles[t];
+      out.mFaces[t].mNumIndices = 3;
+      out.mFaces[t].mIndices =
+          new unsigned int[3]{static_cast<unsigned int>(f[0]), static_cast<unsigned int>(f[1]),
+                              static_cast<unsigned int>(f[2])};
+    }
+  };
+  const std::string error = geometry_internal::ExportOneMesh(path, format, fill);
+  if (!error.empty()) throw MeshError("cannot write " + Quoted(path) + ": " + error);
 }
 
 }  // namespace
