@@ -79,9 +79,6 @@ void RunSession::Home() {
 std::optional<Ask> RunSession::EstablishPosition(const std::vector<Eigen::Vector3d>& sent,
                                                  bool homing_sent) {
   Publish("verifying");
-  const bool confirmed = overrides_.confirm == "position";
-  const std::string resume =
-      "`gs360 run resume " + std::to_string(run_id_) + " --confirm position`";
   // Lines sent while it restarted may run after its welcome, a homing cycle may still be on its
   // way: let them finish before looking.
   if (!client_->Alarmed()) {
@@ -90,86 +87,10 @@ std::optional<Ask> RunSession::EstablishPosition(const std::vector<Eigen::Vector
                     : Ms(config_.engine.sync_timeout_s));
   }
   const std::uint64_t stray = client_->StrayRepliesSinceWelcome();
-  if (client_->Alarmed() || stray > 0) {
-    const auto alarm = client_->LastAlarm();
-    const std::string why =
-        client_->Alarmed()
-            ? "the controller is in alarm (" +
-                  (alarm ? "ALARM:" + std::to_string(*alarm) + ", " + GrblAlarmText(*alarm)
-                         : std::string("it restarted")) +
-                  "): its position is lost"
-            : "the controller restarted and then executed " + std::to_string(stray) +
-                  " line(s) sent while it did: where it stands cannot be checked against the "
-                  "motion sent";
-    if (config_.machine.home) {
-      // It stopped somewhere on the last motion sent: home only if all of it is clear.
-      if (!confirmed && !PathClearOfGel(sent)) {
-        return Ask{"position", why +
-                                   ", and the ball may be in or near the gel (it was last sent "
-                                   "to " +
-                                   Fmt3(sent.back()) +
-                                   "): homing moves Z first and "
-                                   "would drag it. Nothing was moved. Move the tool clear of "
-                                   "the sensor by hand, then " +
-                                   resume + " (it homes)."};
-      }
-      Home();
-    } else {
-      if (!confirmed) {
-        return Ask{"position", why +
-                                   " and homing is off, so where the tool is cannot be known. "
-                                   "Nothing was moved. Make the controller's position true "
-                                   "(or move the tool to where MPos says it is), then " +
-                                   resume + "."};
-      }
-      if (client_->Alarmed()) Unlock();
-      client_->MarkPositionTrusted();
-    }
-  } else {
-    const auto status = client_->QueryStatus(std::chrono::seconds(5));
-    if (!status || !status->machine_position) {
-      throw std::runtime_error("the controller at " + config_.machine.uri +
-                               " reports no machine position");
-    }
-    const Eigen::Vector3d reported = *status->machine_position;
-    // Lines are executed whole and in order: a controller that kept its position stands where
-    // one of the last motion's lines took it (or where it started).
-    double nearest = std::numeric_limits<double>::infinity();
-    for (const Eigen::Vector3d& p : sent) nearest = std::min(nearest, (reported - p).norm());
-    // Idle and not in alarm after a $H: it either never read the $H (and stands on the path) or
-    // finished the cycle, which set its position; an interrupted cycle ends in alarm.
-    const bool homed = homing_sent && status->status.state == GrblMachineState::kIdle;
-    const bool off_path = !sent.empty() && nearest > config_.machine.verify_tolerance_mm;
-    if (!confirmed && off_path && !homed) {
-      return Ask{"position",
-                 "the controller reports MPos " + Fmt3(reported) +
-                     " but the tool was last sent to " + Fmt3(sent.back()) + " (" +
-                     FormatFixed(nearest, 3) +
-                     " mm from any point of that motion): it may have restarted or been moved by "
-                     "hand. Nothing was moved. Check the machine, then " +
-                     resume + " to take its position as true" +
-                     (config_.machine.home ? " (it homes)." : ".")};
-    }
-    if (!confirmed && sent.empty() && !config_.machine.home) {
-      return Ask{"position", "homing is off: check that the controller's position (MPos " +
-                                 Fmt3(reported) + ") is where the tool really is, then " + resume +
-                                 "."};
-    }
-    if (!confirmed && off_path) {
-      Event(EventLevel::kInfo,
-            "the controller finished the homing cycle sent before the daemon stopped: it stands "
-            "at " +
-                Fmt3(reported));
-    } else if (!confirmed && !sent.empty()) {
-      Event(EventLevel::kInfo,
-            "position verified: the controller stands where the last motion sent took it, " +
-                Fmt3(reported));
-    }
-    client_->MarkPositionTrusted();
-    position_ = reported;
-    BackOutOfGel();
-    if (config_.machine.home) Home();
-  }
+  const std::optional<Ask> ask = client_->Alarmed() || stray > 0
+                                     ? RecoverLostPosition(sent, stray)
+                                     : VerifyPosition(sent, homing_sent);
+  if (ask) return ask;
   for (const std::string& line : ProgramPreamble()) {
     const GrblReply r = client_->WaitForOk(client_->Send(line), std::chrono::seconds(10));
     if (!r.Ok()) throw std::runtime_error("preamble '" + line + "' failed: " + r.Describe());
@@ -182,6 +103,99 @@ std::optional<Ask> RunSession::EstablishPosition(const std::vector<Eigen::Vector
   position_ = *status->machine_position;
   last_path_ = {position_};
   at_retract_of_ = (position_ - plan_.start_machine).norm() < 1e-3 ? -1 : -2;
+  return std::nullopt;
+}
+
+std::string RunSession::ResumeConfirming() const {
+  return "`gs360 run resume " + std::to_string(run_id_) + " --confirm position`";
+}
+
+std::optional<Ask> RunSession::RecoverLostPosition(const std::vector<Eigen::Vector3d>& sent,
+                                                   std::uint64_t stray) {
+  const bool confirmed = overrides_.confirm == "position";
+  const std::string resume = ResumeConfirming();
+  const auto alarm = client_->LastAlarm();
+  const std::string why =
+      client_->Alarmed()
+          ? "the controller is in alarm (" +
+                (alarm ? "ALARM:" + std::to_string(*alarm) + ", " + GrblAlarmText(*alarm)
+                       : std::string("it restarted")) +
+                "): its position is lost"
+          : "the controller restarted and then executed " + std::to_string(stray) +
+                " line(s) sent while it did: where it stands cannot be checked against the "
+                "motion sent";
+  if (config_.machine.home) {
+    // It stopped somewhere on the last motion sent: home only if all of it is clear.
+    if (!confirmed && !PathClearOfGel(sent)) {
+      return Ask{"position", why +
+                                 ", and the ball may be in or near the gel (it was last sent "
+                                 "to " +
+                                 Fmt3(sent.back()) +
+                                 "): homing moves Z first and would drag it. Nothing was moved. "
+                                 "Move the tool clear of the sensor by hand, then " +
+                                 resume + " (it homes)."};
+    }
+    Home();
+    return std::nullopt;
+  }
+  if (!confirmed) {
+    return Ask{"position", why +
+                               " and homing is off, so where the tool is cannot be known. "
+                               "Nothing was moved. Make the controller's position true "
+                               "(or move the tool to where MPos says it is), then " +
+                               resume + "."};
+  }
+  if (client_->Alarmed()) Unlock();
+  client_->MarkPositionTrusted();
+  return std::nullopt;
+}
+
+std::optional<Ask> RunSession::VerifyPosition(const std::vector<Eigen::Vector3d>& sent,
+                                              bool homing_sent) {
+  const bool confirmed = overrides_.confirm == "position";
+  const std::string resume = ResumeConfirming();
+  const auto status = client_->QueryStatus(std::chrono::seconds(5));
+  if (!status || !status->machine_position) {
+    throw std::runtime_error("the controller at " + config_.machine.uri +
+                             " reports no machine position");
+  }
+  const Eigen::Vector3d reported = *status->machine_position;
+  // Lines are executed whole and in order: a controller that kept its position stands where
+  // one of the last motion's lines took it (or where it started).
+  double nearest = std::numeric_limits<double>::infinity();
+  for (const Eigen::Vector3d& p : sent) nearest = std::min(nearest, (reported - p).norm());
+  // Idle and not in alarm after a $H: it either never read the $H (and stands on the path) or
+  // finished the cycle, which set its position; an interrupted cycle ends in alarm.
+  const bool homed = homing_sent && status->status.state == GrblMachineState::kIdle;
+  const bool off_path = !sent.empty() && nearest > config_.machine.verify_tolerance_mm;
+  if (!confirmed && off_path && !homed) {
+    return Ask{"position",
+               "the controller reports MPos " + Fmt3(reported) + " but the tool was last sent to " +
+                   Fmt3(sent.back()) + " (" + FormatFixed(nearest, 3) +
+                   " mm from any point of that motion): it may have restarted or been moved by "
+                   "hand. Nothing was moved. Check the machine, then " +
+                   resume + " to take its position as true" +
+                   (config_.machine.home ? " (it homes)." : ".")};
+  }
+  if (!confirmed && sent.empty() && !config_.machine.home) {
+    return Ask{"position", "homing is off: check that the controller's position (MPos " +
+                               Fmt3(reported) + ") is where the tool really is, then " + resume +
+                               "."};
+  }
+  if (!confirmed && off_path) {
+    Event(EventLevel::kInfo,
+          "the controller finished the homing cycle sent before the daemon stopped: it stands "
+          "at " +
+              Fmt3(reported));
+  } else if (!confirmed && !sent.empty()) {
+    Event(EventLevel::kInfo,
+          "position verified: the controller stands where the last motion sent took it, " +
+              Fmt3(reported));
+  }
+  client_->MarkPositionTrusted();
+  position_ = reported;
+  BackOutOfGel();
+  if (config_.machine.home) Home();
   return std::nullopt;
 }
 

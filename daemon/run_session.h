@@ -104,6 +104,12 @@ class RunSession {
   // configured, with the preamble sent. Throws std::runtime_error when the controller fails (no
   // status, homing failed).
   std::optional<Ask> EstablishPosition(const std::vector<Eigen::Vector3d>& sent, bool homing_sent);
+  // EstablishPosition's two cases: the controller in alarm or restarted (homes, or asks), and
+  // one that kept its position (checked against `sent`; backs out of the gel, homes).
+  std::optional<Ask> RecoverLostPosition(const std::vector<Eigen::Vector3d>& sent,
+                                         std::uint64_t stray);
+  std::optional<Ask> VerifyPosition(const std::vector<Eigen::Vector3d>& sent, bool homing_sent);
+  std::string ResumeConfirming() const;  // the command that resumes confirming the position
   // $H, recorded as sent (RunDatabase::MarkHomingSent) before it goes out; throws when it fails.
   void Home();
   // $X after the user confirmed the position, said in the run's events; throws when refused.
