@@ -307,6 +307,9 @@ Dataset MergeProbeSamples(const std::vector<Dataset>& parts, const std::vector<P
 
 // One calibration call: the stages as member functions sharing what upstream stages produced.
 // Each stage computes its key from its StageSpec (StageKey), then runs or loads its artifact.
+// Where the train stage keeps its per-epoch state (an artifact beside the stages' own).
+constexpr const char* kTrainCheckpointStage = "train-checkpoint";
+
 class Calibration {
  public:
   Calibration(RunDatabase& db, std::int64_t run_id, const CalibrationInputs& inputs,
@@ -374,6 +377,7 @@ class Calibration {
   void Render();
   void BuildDataset();
   void TrainMlp();
+  TrainCheckpointing TrainCheckpoints(const std::string& key);
   void ValidateModel();
   Json ValidateProbes();
   void Export();
@@ -693,23 +697,55 @@ void Calibration::BuildDataset() {
   dataset_ = Dataset::Deserialize(blob);
 }
 
+// The training's state after each epoch, under the train stage's key: a calibration killed
+// while it trains resumes after the last finished epoch, with the result of an uninterrupted one.
+TrainCheckpointing Calibration::TrainCheckpoints(const std::string& key) {
+  TrainCheckpointing checkpoints;
+  try {
+    if (auto saved = db_.GetArtifact(run_id_, kTrainCheckpointStage, key)) {
+      const int epoch = TrainCheckpointEpoch(saved->blob);
+      checkpoints.resume_from = std::move(saved->blob);
+      runner_.Log("train", "resuming from the checkpoint after epoch " + std::to_string(epoch));
+    }
+  } catch (const std::exception& e) {  // corrupt or foreign: start over, say so
+    runner_.Log("train", std::string("the checkpoint cannot be used (") + e.what() +
+                             "): training from the first epoch");
+  }
+  checkpoints.save = [this, key](int epoch, const std::vector<std::uint8_t>& state) {
+    db_.PutArtifact(run_id_, kTrainCheckpointStage, key, state, Json{{"epoch", epoch}}.dump());
+  };
+  return checkpoints;
+}
+
 void Calibration::TrainMlp() {
   TrainOptions to = options_.train;
   to.threads = options_.threads;
   Json metrics_out;
+  const std::string key = Key("train");
   const auto blob = runner_.Run(
-      "train", Key("train"),
+      "train", key,
       [&](Json* metrics) {
         const Eigen::MatrixXf xt = dataset_.X(Split::kTrain), yt = dataset_.Y(Split::kTrain);
         const Eigen::MatrixXf xv = dataset_.X(Split::kValidation),
                               yv = dataset_.Y(Split::kValidation);
-        TrainResult r = Train(xt, yt, xv, yv, to, [&](int epoch, double tl, double vl) {
+        auto log = [&](int epoch, double tl, double vl) {
           if (epoch % 5 == 0) {
             runner_.Log("train", "epoch " + std::to_string(epoch) + ": train loss " +
                                      std::to_string(tl) + ", validation loss " +
                                      std::to_string(vl));
           }
-        });
+        };
+        TrainCheckpointing checkpoints = TrainCheckpoints(key);
+        TrainResult r;
+        try {
+          r = Train(xt, yt, xv, yv, to, log, checkpoints);
+        } catch (const std::invalid_argument& e) {
+          if (checkpoints.resume_from.empty()) throw;
+          runner_.Log("train", std::string("the checkpoint does not fit (") + e.what() +
+                                   "): training from the first epoch");
+          checkpoints.resume_from.clear();
+          r = Train(xt, yt, xv, yv, to, log, checkpoints);
+        }
         Json c = Json::array();
         for (const TrainEpoch& e : r.curve) {
           c.push_back({e.epoch, e.train_loss, e.val_loss, e.seconds, e.learning_rate});

@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
+#include <cstring>
 #include <exception>
 #include <limits>
 #include <mutex>
@@ -13,6 +14,7 @@
 #include <thread>
 
 #include "base/field_error.h"
+#include "base/fields.h"
 
 namespace gs360 {
 namespace {
@@ -158,6 +160,83 @@ void Shuffle(std::vector<std::uint32_t>& perm, Rng& rng) {
 }
 
 // Per-thread buffers for one chunk of a mini-batch.
+// The checkpoint's bytes: little-endian scalars and float arrays as they lie in memory (the
+// platforms gs360 builds on are little-endian), read back with a check of every length.
+class CheckpointWriter {
+ public:
+  template <typename T>
+  void Put(T v) {
+    const auto* p = reinterpret_cast<const std::uint8_t*>(&v);
+    bytes_.insert(bytes_.end(), p, p + sizeof(T));
+  }
+  template <typename M>
+  void PutMatrix(const M& m) {
+    Put<std::uint32_t>(static_cast<std::uint32_t>(m.rows()));
+    Put<std::uint32_t>(static_cast<std::uint32_t>(m.cols()));
+    const auto* p = reinterpret_cast<const std::uint8_t*>(m.data());
+    bytes_.insert(bytes_.end(), p, p + sizeof(float) * static_cast<std::size_t>(m.size()));
+  }
+  void PutLayers(const std::vector<MlpLayer>& layers) {
+    for (const MlpLayer& l : layers) {
+      PutMatrix(l.weight);
+      PutMatrix(l.bias);
+    }
+  }
+  std::vector<std::uint8_t>& bytes() { return bytes_; }
+
+ private:
+  std::vector<std::uint8_t> bytes_;
+};
+
+class CheckpointReader {
+ public:
+  explicit CheckpointReader(std::span<const std::uint8_t> bytes) : bytes_(bytes) {}
+  template <typename T>
+  T Get() {
+    T v;
+    std::memcpy(&v, Take(sizeof(T)), sizeof(T));
+    return v;
+  }
+  // Into `m`, which must already have the shape stored (its layer's).
+  void GetMatrix(Eigen::MatrixXf& m) {
+    const auto rows = Get<std::uint32_t>(), cols = Get<std::uint32_t>();
+    if (rows != m.rows() || cols != m.cols()) {
+      throw std::invalid_argument("Train: the checkpoint holds a " + std::to_string(rows) + "x" +
+                                  std::to_string(cols) + " matrix where the network has " +
+                                  std::to_string(m.rows()) + "x" + std::to_string(m.cols()));
+    }
+    std::memcpy(m.data(), Take(sizeof(float) * static_cast<std::size_t>(m.size())),
+                sizeof(float) * static_cast<std::size_t>(m.size()));
+  }
+  void GetVector(Eigen::VectorXf& v) {
+    Eigen::MatrixXf m(v.size(), 1);
+    GetMatrix(m);
+    v = m.col(0);
+  }
+  void GetLayers(std::vector<MlpLayer>& layers) {
+    for (MlpLayer& l : layers) {
+      GetMatrix(l.weight);
+      GetVector(l.bias);
+    }
+  }
+  bool AtEnd() const { return at_ == bytes_.size(); }
+
+ private:
+  const std::uint8_t* Take(std::size_t n) {
+    if (bytes_.size() - at_ < n) {
+      throw std::invalid_argument("Train: the checkpoint is truncated (" +
+                                  std::to_string(bytes_.size()) + " bytes)");
+    }
+    const std::uint8_t* p = bytes_.data() + at_;
+    at_ += n;
+    return p;
+  }
+  std::span<const std::uint8_t> bytes_;
+  std::size_t at_ = 0;
+};
+
+constexpr std::uint64_t kCheckpointMagic = 0x31304e5254303633ull;  // "360TRN01"
+
 struct Workspace {
   Eigen::MatrixXf x;                  // [in, chunk] raw inputs
   Eigen::MatrixXf y;                  // [out, chunk] normalised targets
@@ -527,6 +606,30 @@ class Trainer {
 
   Pool& pool() { return pool_; }
 
+  // Adam's state (the weights are the Mlp's).
+  void Save(CheckpointWriter& w) const {
+    w.Put(b1_power_);
+    w.Put(b2_power_);
+    for (int k = 0; k < num_layers_; ++k) {
+      w.PutMatrix(m_w_[k]);
+      w.PutMatrix(v_w_[k]);
+      w.PutMatrix(m_b_[k]);
+      w.PutMatrix(v_b_[k]);
+    }
+  }
+  // Restores Save's state and the permutation after `epochs` epochs' shuffles.
+  void Load(CheckpointReader& r, int epochs) {
+    b1_power_ = r.Get<double>();
+    b2_power_ = r.Get<double>();
+    for (int k = 0; k < num_layers_; ++k) {
+      r.GetMatrix(m_w_[k]);
+      r.GetMatrix(v_w_[k]);
+      r.GetVector(m_b_[k]);
+      r.GetVector(v_b_[k]);
+    }
+    for (int e = 0; e < epochs; ++e) Shuffle(perm_, rng_);
+  }
+
   // One pass over the reshuffled training set at learning rate `lr`; returns the mean loss.
   double Epoch(double lr) {
     Shuffle(perm_, rng_);
@@ -620,6 +723,23 @@ class EpochTracker {
   const std::vector<MlpLayer>& best_layers() const { return best_layers_; }
   double best_val() const { return best_val_; }
 
+  void Save(CheckpointWriter& w) const {
+    w.PutLayers(best_layers_);
+    w.Put(best_val_);
+    w.Put(significant_best_);
+    w.Put(significant_epoch_);
+    w.Put(plateau_best_);
+    w.Put(plateau_count_);
+  }
+  void Load(CheckpointReader& r) {
+    r.GetLayers(best_layers_);
+    best_val_ = r.Get<double>();
+    significant_best_ = r.Get<double>();
+    significant_epoch_ = r.Get<int>();
+    plateau_best_ = r.Get<double>();
+    plateau_count_ = r.Get<int>();
+  }
+
   // After epoch `epoch`: updates the best weights, *result's best epoch and *lr; returns false
   // when the training stops (early stopping, or a non-finite loss after a finite epoch). Throws
   // std::runtime_error when the very first losses are non-finite.
@@ -673,9 +793,107 @@ class EpochTracker {
 
 }  // namespace
 
+namespace {
+
+// What a checkpoint must match to be resumed: the options (all of them, threads included), the
+// data's sizes and the network's layer sizes.
+std::string CheckpointIdentity(const TrainOptions& options, const Eigen::MatrixXf& x_train,
+                               const Eigen::MatrixXf& x_val, const Mlp& mlp) {
+  nlohmann::json id = FieldsToJson(options);
+  id["train_samples"] = x_train.cols();
+  id["validation_samples"] = x_val.cols();
+  id["sizes"] = mlp.sizes();
+  return id.dump();
+}
+
+// The state after epoch `epoch` (the next one to run: epoch + 1, at rate `lr`).
+std::vector<std::uint8_t> SaveCheckpoint(const std::string& identity, int epoch, double lr,
+                                         const Mlp& mlp, const Trainer& trainer,
+                                         const EpochTracker& tracker, const TrainResult& result) {
+  CheckpointWriter w;
+  w.Put(kCheckpointMagic);
+  w.Put<std::int32_t>(epoch);
+  w.Put<std::uint32_t>(static_cast<std::uint32_t>(identity.size()));
+  w.bytes().insert(w.bytes().end(), identity.begin(), identity.end());
+  w.Put(lr);
+  w.PutLayers(mlp.layers());
+  trainer.Save(w);
+  tracker.Save(w);
+  w.Put<std::int32_t>(result.best_epoch);
+  w.Put<std::uint32_t>(static_cast<std::uint32_t>(result.curve.size()));
+  for (const TrainEpoch& e : result.curve) {
+    w.Put<std::int32_t>(e.epoch);
+    w.Put(e.train_loss);
+    w.Put(e.val_loss);
+    w.Put(e.seconds);
+    w.Put(e.learning_rate);
+  }
+  return std::move(w.bytes());
+}
+
+// Restores SaveCheckpoint's state; returns the first epoch still to run.
+int LoadCheckpoint(std::span<const std::uint8_t> bytes, const std::string& identity, double* lr,
+                   Mlp& mlp, Trainer& trainer, EpochTracker& tracker, TrainResult& result) {
+  CheckpointReader r(bytes);
+  const int epoch = TrainCheckpointEpoch(bytes);
+  r.Get<std::uint64_t>();
+  r.Get<std::int32_t>();
+  const auto id_size = r.Get<std::uint32_t>();
+  std::string stored(id_size, '\0');
+  for (char& c : stored) c = static_cast<char>(r.Get<std::uint8_t>());
+  if (stored != identity) {
+    // Name what differs: "threads 2 in the checkpoint, 1 here".
+    const nlohmann::json was = nlohmann::json::parse(stored, nullptr, false);
+    const nlohmann::json now = nlohmann::json::parse(identity);
+    std::string diff;
+    for (const auto& [key, value] : now.items()) {
+      if (was.is_object() && was.contains(key) && was[key] == value) continue;
+      if (!diff.empty()) diff += "; ";
+      diff += key + " " + (was.is_object() && was.contains(key) ? was[key].dump() : "none") +
+              " in the checkpoint, " + value.dump() + " here";
+    }
+    throw std::invalid_argument(
+        "Train: the checkpoint is of another training (options, data or layer sizes differ: " +
+        diff + ")");
+  }
+  *lr = r.Get<double>();
+  r.GetLayers(mlp.layers());
+  trainer.Load(r, epoch + 1);
+  tracker.Load(r);
+  result.best_epoch = r.Get<std::int32_t>();
+  const auto epochs = r.Get<std::uint32_t>();
+  if (epochs != static_cast<std::uint32_t>(epoch + 1)) {
+    throw std::invalid_argument("Train: the checkpoint after epoch " + std::to_string(epoch) +
+                                " holds " + std::to_string(epochs) + " epochs of curve");
+  }
+  for (std::uint32_t i = 0; i < epochs; ++i) {
+    TrainEpoch e;
+    e.epoch = r.Get<std::int32_t>();
+    e.train_loss = r.Get<double>();
+    e.val_loss = r.Get<double>();
+    e.seconds = r.Get<double>();
+    e.learning_rate = r.Get<double>();
+    result.curve.push_back(e);
+  }
+  if (!r.AtEnd()) throw std::invalid_argument("Train: the checkpoint has bytes after its end");
+  return epoch + 1;
+}
+
+}  // namespace
+
+int TrainCheckpointEpoch(std::span<const std::uint8_t> state) {
+  CheckpointReader r(state);
+  if (r.Get<std::uint64_t>() != kCheckpointMagic) {
+    throw std::invalid_argument("Train: not a training checkpoint of this version (" +
+                                std::to_string(state.size()) + " bytes)");
+  }
+  return r.Get<std::int32_t>();
+}
+
 TrainResult Train(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train,
                   const Eigen::MatrixXf& x_val, const Eigen::MatrixXf& y_val,
-                  const TrainOptions& options, const TrainProgress& progress) {
+                  const TrainOptions& options, const TrainProgress& progress,
+                  const TrainCheckpointing& checkpointing) {
   options.Check();
   CheckTrainData(x_train, y_train, x_val, y_val);
   const auto start = Clock::now();
@@ -685,7 +903,12 @@ TrainResult Train(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train
   Trainer trainer(mlp, x_train, y_train, options);
   EpochTracker tracker(mlp, options);
   double lr = options.learning_rate;
-  for (int epoch = 0; epoch < options.max_epochs; ++epoch) {
+  const std::string identity = CheckpointIdentity(options, x_train, x_val, mlp);
+  int first = 0;
+  if (!checkpointing.resume_from.empty()) {
+    first = LoadCheckpoint(checkpointing.resume_from, identity, &lr, mlp, trainer, tracker, result);
+  }
+  for (int epoch = first; epoch < options.max_epochs; ++epoch) {
     const auto epoch_start = Clock::now();
     if (options.schedule == LearningRateSchedule::kCosine) {
       lr = options.min_learning_rate +
@@ -699,6 +922,9 @@ TrainResult Train(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train
     result.curve.push_back({epoch, train_loss, val_loss, SecondsSince(epoch_start), lr});
     if (progress) progress(epoch, train_loss, val_loss);
     if (!tracker.Continue(epoch, train_loss, val_loss, mlp, &lr, &result)) break;
+    if (checkpointing.save) {
+      checkpointing.save(epoch, SaveCheckpoint(identity, epoch, lr, mlp, trainer, tracker, result));
+    }
   }
   mlp.layers() = tracker.best_layers();
   result.best_val_loss = tracker.best_val();

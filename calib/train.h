@@ -28,6 +28,7 @@
 #include <Eigen/Core>
 #include <cstdint>
 #include <functional>
+#include <span>
 #include <vector>
 
 #include "recon/mlp.h"
@@ -127,12 +128,29 @@ struct TrainResult {
 // Called after every epoch on the calling thread.
 using TrainProgress = std::function<void(int epoch, double train_loss, double val_loss)>;
 
+// Resuming a training that was killed. After every epoch `save` gets the whole state of the
+// training (weights, Adam's moments, the schedule, the best epoch, the curve so far; a few times
+// the model's size); Train called again with those bytes in `resume_from` and the same data,
+// options and thread count carries on after that epoch and returns bit-identically what an
+// uninterrupted run returns (the shuffles of the finished epochs are replayed from the seed).
+struct TrainCheckpointing {
+  std::function<void(int epoch, const std::vector<std::uint8_t>& state)> save;
+  std::vector<std::uint8_t> resume_from;  // empty: from the first epoch
+};
+
+// The epoch after which a checkpoint's state was saved; std::invalid_argument for bytes that
+// are not a checkpoint of this format version (truncated, foreign).
+int TrainCheckpointEpoch(std::span<const std::uint8_t> state);
+
 // x_*: [in, n] features, y_*: [out, n] targets, one sample per column. Throws
 // std::invalid_argument for bad options, empty sets, mismatched row/column counts or non-finite
-// values in the data; std::runtime_error when the loss is non-finite in the first epoch.
+// values in the data, and for a checkpoint that is corrupt or of other data, layer sizes, seed or
+// thread count (the message says which); std::runtime_error when the loss is non-finite in the
+// first epoch.
 TrainResult Train(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train,
                   const Eigen::MatrixXf& x_val, const Eigen::MatrixXf& y_val,
-                  const TrainOptions& options, const TrainProgress& progress = {});
+                  const TrainOptions& options, const TrainProgress& progress = {},
+                  const TrainCheckpointing& checkpointing = {});
 
 // Mean squared error of `mlp` on (x, y) in the units of the loss above (normalised by the Mlp's
 // output scale). Multi-threaded over `threads`; deterministic for a thread count.

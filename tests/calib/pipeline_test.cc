@@ -184,6 +184,28 @@ TEST_CASE(
   REQUIRE(to.stages.back().stage == "train");
   CHECK_FALSE(to.stages.back().cached);
   for (std::size_t k = 0; k + 1 < to.stages.size(); ++k) CHECK(to.stages[k].cached);
+  // The training left its last checkpoint beside its artifact; a forced run resumes from it, and
+  // from the first epoch when it is corrupt, with the same weights either way.
+  std::string train_key;
+  for (const ArtifactRecord& a : db.ListArtifacts(s.run_id)) {
+    if (a.stage == "train-checkpoint") train_key = a.input_hash;
+  }
+  REQUIRE_FALSE(train_key.empty());
+  const auto trained = db.GetArtifact(s.run_id, "train", train_key)->blob;
+  for (const bool corrupt : {false, true}) {
+    if (corrupt) {
+      db.PutArtifact(s.run_id, "train-checkpoint", train_key, std::vector<std::uint8_t>(40, 3));
+    }
+    std::string log;
+    to = RunCalibration(db, s.run_id, s.inputs, o, nullptr,
+                        [&](const std::string& stage, const std::string& m) {
+                          if (stage == "train") log += m + "\n";
+                        });
+    INFO(log);
+    CHECK_THAT(log, Catch::Contains(corrupt ? "the checkpoint cannot be used"
+                                            : "resuming from the checkpoint after epoch 2"));
+    CHECK(db.GetArtifact(s.run_id, "train", train_key)->blob == trained);
+  }
   // ... and refuses to compute an input that is not cached, naming it and the --to to run.
   o.render.margin_px += 1.0;
   CHECK_THROWS_WITH(RunCalibration(db, s.run_id, s.inputs, o),

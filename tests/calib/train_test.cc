@@ -270,6 +270,65 @@ TEST_CASE("Train is reproducible for a seed and thread count", "[train]") {
   CHECK(d.best_val_loss == Approx(a.best_val_loss).epsilon(0.05));
 }
 
+TEST_CASE("a killed training resumes from its checkpoint with bit-identical weights", "[train]") {
+  const Data train = SmoothFunction(2000, 7);
+  const Data val = SmoothFunction(500, 8);
+  TrainOptions o = SmallOptions();
+  o.max_epochs = 12;
+  o.batch_size = 100;
+  o.plateau_epochs = 1;  // the rate changes on the way: the schedule's state must survive too
+  o.plateau_threshold = 0.3;
+  const TrainResult whole = Train(train.x, train.y, val.x, val.y, o);
+  REQUIRE(whole.curve.size() == 12);
+  REQUIRE(whole.curve.back().learning_rate < o.learning_rate);
+
+  // Killed after epoch 4 (the progress callback throws, as a SIGKILL would end it there).
+  std::vector<std::uint8_t> last;
+  TrainCheckpointing save;
+  save.save = [&](int, const std::vector<std::uint8_t>& state) { last = state; };
+  struct Killed {};
+  CHECK_THROWS_AS(Train(
+                      train.x, train.y, val.x, val.y, o,
+                      [](int epoch, double, double) {
+                        if (epoch == 5) throw Killed{};
+                      },
+                      save),
+                  Killed);
+  REQUIRE(TrainCheckpointEpoch(last) == 4);
+
+  TrainCheckpointing resume;
+  resume.resume_from = last;
+  std::vector<int> epochs_run;
+  const TrainResult resumed = Train(
+      train.x, train.y, val.x, val.y, o,
+      [&](int epoch, double, double) { epochs_run.push_back(epoch); }, resume);
+  CHECK(epochs_run.front() == 5);
+  CHECK(epochs_run.size() == 7);
+  CHECK(SameWeights(resumed.mlp, whole.mlp));
+  CHECK(resumed.best_epoch == whole.best_epoch);
+  CHECK(resumed.best_val_loss == whole.best_val_loss);
+  REQUIRE(resumed.curve.size() == whole.curve.size());
+  for (std::size_t e = 0; e < whole.curve.size(); ++e) {
+    CHECK(resumed.curve[e].val_loss == whole.curve[e].val_loss);
+    CHECK(resumed.curve[e].learning_rate == whole.curve[e].learning_rate);
+  }
+
+  // A checkpoint of another training, a truncated one, foreign bytes: a clear error.
+  TrainOptions other = o;
+  other.threads = 1;
+  CHECK_THROWS_WITH(Train(train.x, train.y, val.x, val.y, other, {}, resume),
+                    Catch::Contains("checkpoint is of another training") &&
+                        Catch::Contains("threads 2 in the checkpoint, 1 here"));
+  TrainCheckpointing truncated;
+  truncated.resume_from.assign(last.begin(), last.begin() + static_cast<long>(last.size() / 2));
+  CHECK_THROWS_WITH(Train(train.x, train.y, val.x, val.y, o, {}, truncated),
+                    Catch::Contains("checkpoint is truncated"));
+  TrainCheckpointing foreign;
+  foreign.resume_from = std::vector<std::uint8_t>(64, 7);
+  CHECK_THROWS_WITH(Train(train.x, train.y, val.x, val.y, o, {}, foreign),
+                    Catch::Contains("not a training checkpoint"));
+}
+
 TEST_CASE("Train handles tiny batches and more threads than samples", "[train]") {
   Data train = SmoothFunction(5, 9);
   const Data val = SmoothFunction(3, 10);
