@@ -97,6 +97,9 @@ void MachineConfig::Check() const {
   if (!(verify_tolerance_mm > 0.0)) {
     Invalid("machine.verify_tolerance_mm", std::to_string(verify_tolerance_mm), "must be > 0");
   }
+  if (status_interval_ms < 1 || status_interval_ms > 1000) {
+    Invalid("machine.status_interval_ms", std::to_string(status_interval_ms), "must be in 1..1000");
+  }
 }
 
 void CameraConfig::Check() const {
@@ -160,7 +163,8 @@ nlohmann::json RunConfigToJson(const RunConfig& c) {
        {{"uri", c.machine.uri},
         {"baud", c.machine.baud},
         {"home", c.machine.home},
-        {"verify_tolerance_mm", c.machine.verify_tolerance_mm}}},
+        {"verify_tolerance_mm", c.machine.verify_tolerance_mm},
+        {"status_interval_ms", c.machine.status_interval_ms}}},
       {"camera",
        {{"uri", c.camera.uri},
         {"exposure_us", c.camera.controls.exposure_us},
@@ -196,6 +200,7 @@ void ReadRunConfig(JsonReader& r, RunConfig& c) {
     o.Get("baud", c.machine.baud);
     o.Get("home", c.machine.home);
     o.Get("verify_tolerance_mm", c.machine.verify_tolerance_mm);
+    o.Get("status_interval_ms", c.machine.status_interval_ms);
   });
   r.Object("camera", [&](JsonReader& o) {
     o.Get("uri", c.camera.uri);

@@ -21,6 +21,9 @@ struct MachineConfig {
   // vouches that MPos is right (verify_position then only checks the controller answers).
   bool home = true;
   double verify_tolerance_mm = 0.02;
+  // The least time between two status queries ('?'), 1..1000 ms: GRBL on an AVR asks for at
+  // most 5 Hz (200); grblHAL and the virtual CNC take far more.
+  int status_interval_ms = 200;
   void Check() const;
 };
 

@@ -26,7 +26,11 @@ void RunSession::ConnectMachine() {
   Publish("connecting");
   TransportOptions transport;
   transport.baud = config_.machine.baud;
-  client_ = GrblClient::ForUri(config_.machine.uri, transport);
+  GrblClientOptions options;
+  options.status_min_interval = std::chrono::milliseconds(config_.machine.status_interval_ms);
+  options.status_poll_interval =
+      std::max(options.status_poll_interval, options.status_min_interval);
+  client_ = GrblClient::ForUri(config_.machine.uri, transport, options);
   const GrblMachineInfo info = client_->Connect();
   Event(EventLevel::kInfo, "connected to " + info.firmware + " " + info.version + " at " +
                                config_.machine.uri + " (RX buffer " +

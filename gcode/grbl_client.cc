@@ -16,8 +16,7 @@ namespace {
 using Clock = std::chrono::steady_clock;
 using std::chrono::milliseconds;
 
-constexpr milliseconds kMinStatusInterval{200};  // GRBL: poll at most 5 Hz
-constexpr milliseconds kReadSlice{50};           // reader wake-up period (for stop requests)
+constexpr milliseconds kReadSlice{50};  // reader wake-up period (for stop requests)
 
 struct LineTraits {
   bool exclusive = false;  // settings write or '$' system command: sent alone
@@ -224,9 +223,15 @@ void GrblClientOptions::Check() const {
                                 " ms) must be >= reconnect_backoff_initial (" +
                                 std::to_string(reconnect_backoff_initial.count()) + " ms)");
   }
-  if (status_poll_interval.count() != 0 && status_poll_interval < kMinStatusInterval) {
+  if (status_min_interval.count() < 1 || status_min_interval.count() > 1000) {
     throw std::invalid_argument(
-        "GrblClientOptions.status_poll_interval must be 0 (off) or >= 200 ms (5 Hz), got " +
+        "GrblClientOptions.status_min_interval must be in 1..1000 ms, got " +
+        std::to_string(status_min_interval.count()) + " ms");
+  }
+  if (status_poll_interval.count() != 0 && status_poll_interval < status_min_interval) {
+    throw std::invalid_argument(
+        "GrblClientOptions.status_poll_interval must be 0 (off) or >= status_min_interval (" +
+        std::to_string(status_min_interval.count()) + " ms), got " +
         std::to_string(status_poll_interval.count()) + " ms");
   }
   if (default_rx_buffer_bytes < 16) {
@@ -881,7 +886,7 @@ GrblReply GrblClient::WaitForOk(const GrblHandle& handle, std::chrono::milliseco
 // --- status --------------------------------------------------------------------------------------
 
 std::optional<Clock::time_point> GrblClient::RequestStatus(bool wait) {
-  const milliseconds interval = std::max(kMinStatusInterval, options_.status_poll_interval);
+  const milliseconds interval = options_.status_min_interval;
   std::lock_guard slock(status_request_mu_);
   auto now = Clock::now();
   const auto allowed = last_status_request_ + interval;

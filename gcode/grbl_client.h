@@ -111,8 +111,11 @@ struct GrblClientOptions {
   std::chrono::milliseconds query_timeout{3000};
   // Reply to $H (the homing cycle runs before the ok).
   std::chrono::milliseconds homing_timeout{120000};
-  // Status poll period; 0 disables the poller. At least 200 ms: GRBL asks for <= 5 Hz. Every
-  // '?' the client sends (poller, QueryStatus, WaitIdle) shares this rate limit.
+  // The least time between two '?' the client sends (poller, QueryStatus, WaitIdle), 1..1000 ms.
+  // GRBL on an AVR asks for at most 5 Hz; grblHAL and the virtual CNC answer much faster, and at
+  // instant motion a run otherwise spends most of each probe waiting for its turn to ask.
+  std::chrono::milliseconds status_min_interval{200};
+  // Status poll period; 0 disables the poller, otherwise at least status_min_interval.
   std::chrono::milliseconds status_poll_interval{200};
   // RX buffer size assumed until `$I` reports one (classic GRBL).
   int default_rx_buffer_bytes = 128;

@@ -25,9 +25,11 @@ TEST_CASE("run config round-trips through JSON", "[daemon][config]") {
   c.plan.probe_count = 123;
   c.plan.press_depth = 0.8;
   c.machine.uri = "/dev/ttyUSB0";
+  c.machine.status_interval_ms = 25;
   c.camera.uri = "libcamera:0";
   c.camera.capture.frames_to_average = 5;
   const RunConfig back = RunConfigFromJson(RunConfigToJson(c), "mem");
+  CHECK(back.machine.status_interval_ms == 25);
   CHECK(back.rig.shape.shape == SensorShape::kCone);
   CHECK(back.plan.probe_count == 123);
   CHECK(back.plan.press_depth == 0.8);

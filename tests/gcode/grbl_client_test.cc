@@ -366,7 +366,13 @@ TEST_CASE("a welcome line mid-job voids every line in flight", "[grbl_client]") 
 TEST_CASE("status polling never exceeds 5 Hz", "[grbl_client]") {
   GrblClientOptions bad = FastOptions();
   bad.status_poll_interval = 100ms;
-  CHECK_THROWS_WITH(bad.Check(), Catch::Contains("status_poll_interval"));
+  CHECK_THROWS_WITH(bad.Check(), Catch::Contains("status_poll_interval") &&
+                                     Catch::Contains(">= status_min_interval (200 ms)"));
+  bad.status_min_interval = 100ms;  // a faster controller: allowed down to its own minimum
+  CHECK_NOTHROW(bad.Check());
+  bad.status_min_interval = 0ms;
+  CHECK_THROWS_WITH(bad.Check(),
+                    Catch::Contains("status_min_interval must be in 1..1000 ms, got 0"));
 
   auto fake = FakeGrbl::CreatePty();
   GrblClientOptions o = FastOptions();
