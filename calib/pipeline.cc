@@ -821,6 +821,19 @@ Json Calibration::ValidateProbes() {
     probe_errors.push_back({point.x(), point.y(), point.z(), error});
   }
   v.report["probe_errors"] = probe_errors;
+  // Captured probes the dataset left out, by reason (the dataset stage's rule).
+  int unseen = 0, small = 0;
+  for (const ProbeInfo& p : probes_) {
+    const auto it = renders_.find(p.plan_index);
+    const int pixels = it == renders_.end() ? 0 : it->second.contact_pixels;
+    unseen += pixels == 0 ? 1 : 0;
+    small += pixels > 0 && pixels < options_.dataset.min_contact_pixels ? 1 : 0;
+  }
+  v.report["probes_captured"] = probes_.size();
+  v.report["probes_dropped"] = {{"no_contact_seen", unseen},
+                                {"below_min_contact_pixels", small},
+                                {"min_contact_pixels", options_.dataset.min_contact_pixels}};
+  v.report["warnings"] = CalibrationWarnings(v.report, curve_, dataset_.probes.size());
   ReportInputs ri;
   ri.title = "gs360 calibration: run " + std::to_string(run_id_) + " (" + inputs_.sensor + ")";
   ri.validation = v.report;

@@ -10,6 +10,8 @@
 #include <sstream>
 #include <string_view>
 
+#include "base/format.h"
+
 namespace gs360 {
 namespace {
 
@@ -143,6 +145,14 @@ std::string SummaryLine(const Json& v) {
                   Num(Find(v, "probes_missed"), 0) + " missed; contact pixels " +
                   Num(Find(v, "contact_pixels"), 0) + " (" +
                   Num(Find(v, "contact_pixels_outside_roi"), 0) + " outside the ROI)";
+  const Json* dropped = Find(v, "probes_dropped");
+  if (dropped != nullptr && dropped->is_object()) {
+    s += "; left out of the dataset: " + Num(Find(*dropped, "no_contact_seen"), 0) +
+         " (no contact seen by the camera) and " +
+         Num(Find(*dropped, "below_min_contact_pixels"), 0) + " (fewer than " +
+         Num(Find(*dropped, "min_contact_pixels"), 0) + " contact pixels) of " +
+         Num(Find(v, "probes_captured"), 0) + " captured";
+  }
   return s;
 }
 
@@ -313,6 +323,30 @@ std::string StageTable(const Json& stages) {
   return s.str();
 }
 
+// The accuracy targets, pass or fail, and the warnings the pipeline attached.
+std::string TargetsSection(const Json& validation) {
+  std::ostringstream s;
+  s << "<h3>targets</h3>\n<table><tr><th>figure</th><th>value</th><th>target</th><th></th></tr>\n";
+  for (const Json& t : ValidationTargets(validation)) {
+    const std::string unit = t.value("unit", std::string());
+    s << "<tr><td>" << Escape(t.value("name", std::string())) << " ("
+      << Escape(t.value("truth", "")) << ")</td><td class=\"n\">"
+      << (t["value"].is_number() ? FormatFixed(t["value"].get<double>(), 4) + " " + unit : "-")
+      << "</td><td class=\"n\">&lt;= " << FormatFixed(t.value("target", 0.0), 3) << " " << unit
+      << "</td><td>" << (t.value("pass", false) ? "pass" : "<b>FAIL</b>") << "</td></tr>\n";
+  }
+  s << "</table>\n";
+  const Json* warnings = Find(validation, "warnings");
+  if (warnings != nullptr && warnings->is_array() && !warnings->empty()) {
+    s << "<h3>warnings</h3>\n<ul>\n";
+    for (const Json& w : *warnings) {
+      if (w.is_object()) s << "<li>" << Escape(w.value("message", std::string())) << "</li>\n";
+    }
+    s << "</ul>\n";
+  }
+  return s.str();
+}
+
 std::string ValidationSection(const Json& validation) {
   if (!validation.is_object() || validation.empty()) return {};
   std::ostringstream s;
@@ -339,6 +373,7 @@ std::string ValidationSection(const Json& validation) {
     s << "<p>" << Escape(pose) << "</p>\n";
   if (const std::string timing = TimingLine(validation); !timing.empty())
     s << "<p>" << Escape(timing) << "</p>\n";
+  s << TargetsSection(validation);
   return s.str();
 }
 
@@ -550,6 +585,89 @@ Json ValidationTargets(const Json& v) {
     const Json* pose = Find(v, "pose");
     add("camera position", pose != nullptr ? Find(*pose, "error_mm") : nullptr, 0.05, "mm");
     add("camera rotation", pose != nullptr ? Find(*pose, "error_deg") : nullptr, 0.05, "deg");
+  }
+  return out;
+}
+
+std::string FormatTargetsAndWarnings(const Json& validation) {
+  std::string s = "targets:\n";
+  for (const Json& t : ValidationTargets(validation)) {
+    const std::string unit = t.value("unit", std::string());
+    s += "  " + PadRight(t.value("name", std::string()), 28) +
+         PadLeft(t["value"].is_number() ? FormatFixed(t["value"].get<double>(), 4) : "-", 10) +
+         " " + PadRight(unit, 4) + " (target <= " + FormatFixed(t.value("target", 0.0), 3) + " " +
+         unit + ", " + t.value("truth", std::string()) + " truth)  " +
+         (t.value("pass", false) ? "pass" : "FAIL") + "\n";
+  }
+  const Json* warnings = Find(validation, "warnings");
+  if (warnings != nullptr && warnings->is_array()) {
+    for (const Json& w : *warnings) {
+      if (w.is_object()) s += "warning: " + w.value("message", std::string()) + "\n";
+    }
+  }
+  return s;
+}
+
+Json CalibrationWarnings(const Json& validation, const std::vector<TrainEpoch>& curve,
+                         std::size_t probes) {
+  Json out = Json::array();
+  const auto warn = [&](const char* code, const std::string& message) {
+    out.push_back({{"code", code}, {"message", message}});
+  };
+  std::string missed;
+  for (const Json& t : ValidationTargets(validation)) {
+    if (t.value("pass", false)) continue;
+    if (!missed.empty()) missed += "; ";
+    missed += t.value("name", std::string()) + " " +
+              (t["value"].is_number() ? FormatFixed(t["value"].get<double>(), 3) : "unknown") +
+              " (target <= " + FormatFixed(t.value("target", 0.0), 3) + " " +
+              t.value("unit", std::string()) + ")";
+  }
+  if (!missed.empty()) {
+    warn("targets", "the model misses accuracy targets: " + missed +
+                        ". It is usable, but not as accurate as the rig can give.");
+    if (probes < kFewProbes) {
+      warn("few_probes", "only " + std::to_string(probes) +
+                             " probes trained the model: too few for the targets (on the virtual "
+                             "rig about 2,000 meet every one). Run more probes ([plan] "
+                             "probe_count), resume the run or start a longer one, and calibrate "
+                             "again.");
+    }
+  }
+  const TrainEpoch* best = nullptr;
+  for (const TrainEpoch& e : curve) {
+    if (std::isfinite(e.val_loss) && (best == nullptr || e.val_loss < best->val_loss)) best = &e;
+  }
+  if (best != nullptr && best->train_loss > 0.0 &&
+      best->val_loss > kOverfitRatio * best->train_loss) {
+    warn("overfit", "the network overfits: at its best epoch (" + std::to_string(best->epoch) +
+                        ") the validation loss " + FormatFixed(best->val_loss, 4) + " is " +
+                        FormatFixed(best->val_loss / best->train_loss, 1) +
+                        " times the training loss " + FormatFixed(best->train_loss, 4) +
+                        ". It learnt the training probes rather than the sensor: more probes, or "
+                        "a smaller network (--hidden), help.");
+  }
+  const Json* results = Find(validation, "results");
+  const Json* method = Find(validation, "default_method");
+  const std::string m = method != nullptr && method->is_string() ? method->get<std::string>()
+                                                                 : std::string("heightfield");
+  const std::string truth = ValidationTargets(validation).empty()
+                                ? std::string("rigid")
+                                : ValidationTargets(validation)[0].value("truth", "rigid");
+  if (results != nullptr && results->is_object() && results->contains(truth) &&
+      results->at(truth).contains(m)) {
+    const Json& bands = results->at(truth).at(m);
+    std::string empty;
+    for (const char* band : kValidationBands) {
+      const Json* pixels = bands.contains(band) ? Find(bands.at(band), "pixels") : nullptr;
+      if (pixels != nullptr && pixels->is_number() && pixels->get<double>() > 0) continue;
+      empty += empty.empty() ? band : std::string(", ") + band;
+    }
+    if (!empty.empty()) {
+      warn("empty_band", "no held-out probe fell in " + empty +
+                             ": the validation says nothing there. More probes (or a larger "
+                             "dataset.test_fraction) put some there.");
+    }
   }
   return out;
 }

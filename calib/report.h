@@ -42,6 +42,20 @@ std::string FormatValidationTable(const nlohmann::json& validation);
 // false. Never throws.
 nlohmann::json ValidationTargets(const nlohmann::json& validation);
 
+// Plain warnings about a model that is not good enough, each saying what to do, as an array of
+// {"code", "message"}: "targets" (which ValidationTargets fail, by how much), "few_probes" (a
+// target fails and fewer than kFewProbes probes trained the model), "overfit" (at the best epoch
+// the validation loss is more than kOverfitRatio times the training loss), "empty_band" (a band
+// of the default truth and integrator that no held-out probe fell in: its figures say nothing).
+// `probes`: the probes with contact in the dataset. Never throws.
+// Text for the terminal: one line per target (value, target, pass or FAIL), then "warning: ..."
+// per warning in validation["warnings"]. Never throws.
+std::string FormatTargetsAndWarnings(const nlohmann::json& validation);
+inline constexpr std::size_t kFewProbes = 1000;
+inline constexpr double kOverfitRatio = 3.0;
+nlohmann::json CalibrationWarnings(const nlohmann::json& validation,
+                                   const std::vector<TrainEpoch>& curve, std::size_t probes);
+
 // The HTML page: title, stage table, validation tables, training curve (inline SVG, log-scale
 // loss), error map over the sensor (inline SVG scatter: azimuth deg x height mm, colour = mean
 // error clamped at error_map_clamp_mm) and the examples (PNG data URIs, one shared colour scale

@@ -32,10 +32,8 @@ struct BandErrors {
   std::int64_t probes = 0;
 };
 // Bands by index: the per-pixel loop only adds to a fixed table (no keys built per pixel).
-const char* const kBands[] = {"all",        "height:base", "height:middle",
-                              "height:tip", "view:<30",    "view:30-50",
-                              "view:>50",   "fins:near",   "fins:far"};
-constexpr int kBandCount = 9;
+const auto& kBands = kValidationBands;
+constexpr int kBandCount = static_cast<int>(kValidationBands.size());
 enum Band : int { kAll = 0, kHeightBase = 1, kViewLow = 4, kFinsNear = 7 };
 constexpr int kTruthCount = 2;
 // Indexed [truth][method][band].

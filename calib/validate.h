@@ -20,6 +20,7 @@
 // (mm, per probe: the band of its contact point).
 
 #include <Eigen/Core>
+#include <array>
 #include <functional>
 #include <memory>
 #include <optional>
@@ -34,6 +35,12 @@
 #include "recon/reconstructor.h"
 
 namespace gs360 {
+
+// The bands of validation.json's "results", in their order: all pixels; by height on the sensor
+// (base, middle, tip); by the angle the camera sees the surface at; near or far from a fin.
+inline constexpr std::array<const char*, 9> kValidationBands = {
+    "all",        "height:base", "height:middle", "height:tip", "view:<30",
+    "view:30-50", "view:>50",    "fins:near",     "fins:far"};
 
 // The true surface under one probe (sensor frame, mm). Thread-compatible: one per thread.
 class ProbeSurfaceTruth {

@@ -66,13 +66,7 @@ void ValidateAgainstTruth(const std::filesystem::path& db_path, std::int64_t run
       &truth);
   std::printf("\nvalidation against the virtual rig's physical truth (held-out probes):\n%s",
               FormatValidationTable(result.validation).c_str());
-  for (const auto& t : ValidationTargets(result.validation)) {
-    const bool known = t["value"].is_number();
-    std::printf("  %-28s %10s %-4s target <= %g  %s\n", t["name"].get<std::string>().c_str(),
-                known ? FormatFixed(t["value"].get<double>(), 4).c_str() : "-",
-                t["unit"].get<std::string>().c_str(), t["target"].get<double>(),
-                t["pass"].get<bool>() ? "pass" : "FAIL");
-  }
+  std::printf("%s", FormatTargetsAndWarnings(result.validation).c_str());
 }
 
 int RunDemo(const DemoOptions& o) {

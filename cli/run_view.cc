@@ -147,15 +147,7 @@ Json WatchCalibration(DaemonClient& client, std::int64_t run_id, std::FILE* out)
     std::fprintf(out, "\ncalibration done up to the stage asked for; no model exported\n");
   } else if (Text(view, "state") == "done") {
     std::fprintf(out, "\n%s", FormatValidationTable(view["validation"]).c_str());
-    std::fprintf(out, "\ntargets:\n");
-    for (const auto& t : view.value("targets", Json::array())) {
-      const bool known = t.contains("value") && t["value"].is_number();
-      std::fprintf(out, "  %-28s %10s %-4s (target <= %g %s, %s truth)  %s\n",
-                   Text(t, "name").c_str(),
-                   known ? FormatFixed(t["value"].get<double>(), 4).c_str() : "-",
-                   Text(t, "unit").c_str(), Number(t, "target", 0.0), Text(t, "unit").c_str(),
-                   Text(t, "truth").c_str(), t.value("pass", false) ? "pass" : "FAIL");
-    }
+    std::fprintf(out, "\n%s", FormatTargetsAndWarnings(view["validation"]).c_str());
   } else {
     std::fprintf(out, "\ncalibration %s: %s\n", Text(view, "state").c_str(),
                  Text(view, "error").c_str());

@@ -260,6 +260,9 @@ nlohmann::json CalibrationJobs::ViewOf(const Job& job) const {
           {"validation", job.validation},
           {"targets",
            job.validation.is_null() ? nlohmann::json::array() : ValidationTargets(job.validation)},
+          {"warnings", job.validation.is_object() && job.validation.contains("warnings")
+                           ? job.validation["warnings"]
+                           : nlohmann::json::array()},
           {"files", files}};
 }
 

@@ -288,3 +288,81 @@ TEST_CASE("RenderReportHtml handles empty and malformed inputs", "[report]") {
 
 }  // namespace
 }  // namespace gs360
+
+namespace gs360 {
+namespace {
+
+// A rigid-truth validation whose every band has pixels, at the given figures.
+Json BandsValidation(double mean_mm, double wide_mm) {
+  Json bands = Json::object();
+  for (const char* band : kValidationBands) {
+    bands[band] = {{"pixels", 500},
+                   {"mean_mm", std::string(band) == "view:>50" ? wide_mm : mean_mm},
+                   {"peak_error_mm", 0.02},
+                   {"median_normal_deg", 1.5}};
+  }
+  return Json{{"truths", {"rigid"}},
+              {"default_method", "heightfield"},
+              {"results", {{"rigid", {{"heightfield", bands}}}}}};
+}
+
+std::vector<TrainEpoch> Curve(double train, double val) {
+  return {{0, 2 * train, 2 * val, 1.0, 3e-3}, {1, train, val, 1.0, 3e-3}};
+}
+
+std::vector<std::string> Codes(const Json& warnings) {
+  std::vector<std::string> codes;
+  for (const Json& w : warnings) codes.push_back(w.at("code").get<std::string>());
+  return codes;
+}
+
+}  // namespace
+
+TEST_CASE("calibration warnings: targets missed, too few probes, overfitting, empty bands",
+          "[report]") {
+  // A good model: no warning.
+  CHECK(CalibrationWarnings(BandsValidation(0.02, 0.04), Curve(0.010, 0.012), 2000).empty());
+
+  // The 25-probe demo: misses the targets, overfits (validation 10x training).
+  const Json bad = CalibrationWarnings(BandsValidation(0.16, 0.21), Curve(0.002, 0.020), 25);
+  CHECK(Codes(bad) == std::vector<std::string>{"targets", "few_probes", "overfit"});
+  CHECK_THAT(bad[0]["message"].get<std::string>(),
+             Catch::Contains("mean depth error 0.160 (target <= 0.030 mm)") &&
+                 Catch::Contains("depth error seen > 50 deg 0.210"));
+  CHECK_THAT(bad[1]["message"].get<std::string>(),
+             Catch::Contains("only 25 probes") && Catch::Contains("probe_count"));
+  CHECK_THAT(bad[2]["message"].get<std::string>(),
+             Catch::Contains("10.0 times the training loss") && Catch::Contains("--hidden"));
+
+  // Many probes that still miss: no "few_probes"; a band nobody fell in is named.
+  Json v = BandsValidation(0.04, 0.04);
+  v["results"]["rigid"]["heightfield"].erase("fins:near");
+  v["results"]["rigid"]["heightfield"]["height:tip"]["pixels"] = 0;
+  const Json some = CalibrationWarnings(v, Curve(0.01, 0.011), 5000);
+  CHECK(Codes(some) == std::vector<std::string>{"targets", "empty_band"});
+  CHECK_THAT(some[1]["message"].get<std::string>(),
+             Catch::Contains("height:tip, fins:near") && Catch::Contains("test_fraction"));
+
+  // The terminal text and the HTML report carry them.
+  v["warnings"] = some;
+  const std::string text = FormatTargetsAndWarnings(v);
+  CHECK_THAT(text, Catch::Contains("mean depth error") && Catch::Contains("FAIL") &&
+                       Catch::Contains("warning: no held-out probe fell in"));
+  ReportInputs ri;
+  ri.validation = v;
+  const std::string html = RenderReportHtml(ri);
+  CHECK_THAT(html, Catch::Contains("<h3>targets</h3>") && Catch::Contains("<b>FAIL</b>") &&
+                       Catch::Contains("<li>no held-out probe fell in"));
+  // The summary counts the probes the dataset left out, by reason.
+  v["probes_captured"] = 2000;
+  v["probes_dropped"] = {
+      {"no_contact_seen", 100}, {"below_min_contact_pixels", 25}, {"min_contact_pixels", 8}};
+  CHECK_THAT(FormatValidationTable(v),
+             Catch::Contains("left out of the dataset: 100 (no contact seen by the camera) and 25 "
+                             "(fewer than 8 contact pixels) of 2000 captured"));
+  // Malformed input: never throws.
+  CHECK_NOTHROW(CalibrationWarnings(Json("nonsense"), {}, 0));
+  CHECK_NOTHROW(FormatTargetsAndWarnings(Json{{"warnings", 3}}));
+}
+
+}  // namespace gs360
