@@ -13,6 +13,7 @@
 #include <string>
 #include <thread>
 
+#include "base/byte_io.h"
 #include "base/field_error.h"
 #include "base/fields.h"
 
@@ -160,80 +161,38 @@ void Shuffle(std::vector<std::uint32_t>& perm, Rng& rng) {
 }
 
 // Per-thread buffers for one chunk of a mini-batch.
-// The checkpoint's bytes: little-endian scalars and float arrays as they lie in memory (the
-// platforms gs360 builds on are little-endian), read back with a check of every length.
-class CheckpointWriter {
- public:
-  template <typename T>
-  void Put(T v) {
-    const auto* p = reinterpret_cast<const std::uint8_t*>(&v);
-    bytes_.insert(bytes_.end(), p, p + sizeof(T));
-  }
-  template <typename M>
-  void PutMatrix(const M& m) {
-    Put<std::uint32_t>(static_cast<std::uint32_t>(m.rows()));
-    Put<std::uint32_t>(static_cast<std::uint32_t>(m.cols()));
-    const auto* p = reinterpret_cast<const std::uint8_t*>(m.data());
-    bytes_.insert(bytes_.end(), p, p + sizeof(float) * static_cast<std::size_t>(m.size()));
-  }
-  void PutLayers(const std::vector<MlpLayer>& layers) {
-    for (const MlpLayer& l : layers) {
-      PutMatrix(l.weight);
-      PutMatrix(l.bias);
-    }
-  }
-  std::vector<std::uint8_t>& bytes() { return bytes_; }
+// The checkpoint's layers and matrices; a stored shape must be the network's.
+template <typename M>
+void PutMatrix(ByteWriter& w, const M& m) {
+  w.Put<std::uint32_t>(static_cast<std::uint32_t>(m.rows()));
+  w.Put<std::uint32_t>(static_cast<std::uint32_t>(m.cols()));
+  w.PutArray(m.data(), static_cast<std::size_t>(m.size()));
+}
 
- private:
-  std::vector<std::uint8_t> bytes_;
-};
+void PutLayers(ByteWriter& w, const std::vector<MlpLayer>& layers) {
+  for (const MlpLayer& l : layers) {
+    PutMatrix(w, l.weight);
+    PutMatrix(w, l.bias);
+  }
+}
 
-class CheckpointReader {
- public:
-  explicit CheckpointReader(std::span<const std::uint8_t> bytes) : bytes_(bytes) {}
-  template <typename T>
-  T Get() {
-    T v;
-    std::memcpy(&v, Take(sizeof(T)), sizeof(T));
-    return v;
+template <typename M>
+void GetMatrix(ByteReader& r, M& m) {
+  const auto rows = r.Get<std::uint32_t>("rows"), cols = r.Get<std::uint32_t>("columns");
+  if (rows != m.rows() || cols != m.cols()) {
+    throw std::invalid_argument("Train: the checkpoint holds a " + std::to_string(rows) + "x" +
+                                std::to_string(cols) + " matrix where the network has " +
+                                std::to_string(m.rows()) + "x" + std::to_string(m.cols()));
   }
-  // Into `m`, which must already have the shape stored (its layer's).
-  void GetMatrix(Eigen::MatrixXf& m) {
-    const auto rows = Get<std::uint32_t>(), cols = Get<std::uint32_t>();
-    if (rows != m.rows() || cols != m.cols()) {
-      throw std::invalid_argument("Train: the checkpoint holds a " + std::to_string(rows) + "x" +
-                                  std::to_string(cols) + " matrix where the network has " +
-                                  std::to_string(m.rows()) + "x" + std::to_string(m.cols()));
-    }
-    std::memcpy(m.data(), Take(sizeof(float) * static_cast<std::size_t>(m.size())),
-                sizeof(float) * static_cast<std::size_t>(m.size()));
-  }
-  void GetVector(Eigen::VectorXf& v) {
-    Eigen::MatrixXf m(v.size(), 1);
-    GetMatrix(m);
-    v = m.col(0);
-  }
-  void GetLayers(std::vector<MlpLayer>& layers) {
-    for (MlpLayer& l : layers) {
-      GetMatrix(l.weight);
-      GetVector(l.bias);
-    }
-  }
-  bool AtEnd() const { return at_ == bytes_.size(); }
+  r.GetArray(m.data(), static_cast<std::size_t>(m.size()), "matrix");
+}
 
- private:
-  const std::uint8_t* Take(std::size_t n) {
-    if (bytes_.size() - at_ < n) {
-      throw std::invalid_argument("Train: the checkpoint is truncated (" +
-                                  std::to_string(bytes_.size()) + " bytes)");
-    }
-    const std::uint8_t* p = bytes_.data() + at_;
-    at_ += n;
-    return p;
+void GetLayers(ByteReader& r, std::vector<MlpLayer>& layers) {
+  for (MlpLayer& l : layers) {
+    GetMatrix(r, l.weight);
+    GetMatrix(r, l.bias);
   }
-  std::span<const std::uint8_t> bytes_;
-  std::size_t at_ = 0;
-};
+}
 
 constexpr std::uint64_t kCheckpointMagic = 0x31304e5254303633ull;  // "360TRN01"
 
@@ -607,25 +566,25 @@ class Trainer {
   Pool& pool() { return pool_; }
 
   // Adam's state (the weights are the Mlp's).
-  void Save(CheckpointWriter& w) const {
+  void Save(ByteWriter& w) const {
     w.Put(b1_power_);
     w.Put(b2_power_);
     for (int k = 0; k < num_layers_; ++k) {
-      w.PutMatrix(m_w_[k]);
-      w.PutMatrix(v_w_[k]);
-      w.PutMatrix(m_b_[k]);
-      w.PutMatrix(v_b_[k]);
+      PutMatrix(w, m_w_[k]);
+      PutMatrix(w, v_w_[k]);
+      PutMatrix(w, m_b_[k]);
+      PutMatrix(w, v_b_[k]);
     }
   }
   // Restores Save's state and the permutation after `epochs` epochs' shuffles.
-  void Load(CheckpointReader& r, int epochs) {
-    b1_power_ = r.Get<double>();
-    b2_power_ = r.Get<double>();
+  void Load(ByteReader& r, int epochs) {
+    b1_power_ = r.Get<double>("state");
+    b2_power_ = r.Get<double>("state");
     for (int k = 0; k < num_layers_; ++k) {
-      r.GetMatrix(m_w_[k]);
-      r.GetMatrix(v_w_[k]);
-      r.GetVector(m_b_[k]);
-      r.GetVector(v_b_[k]);
+      GetMatrix(r, m_w_[k]);
+      GetMatrix(r, v_w_[k]);
+      GetMatrix(r, m_b_[k]);
+      GetMatrix(r, v_b_[k]);
     }
     for (int e = 0; e < epochs; ++e) Shuffle(perm_, rng_);
   }
@@ -723,21 +682,21 @@ class EpochTracker {
   const std::vector<MlpLayer>& best_layers() const { return best_layers_; }
   double best_val() const { return best_val_; }
 
-  void Save(CheckpointWriter& w) const {
-    w.PutLayers(best_layers_);
+  void Save(ByteWriter& w) const {
+    PutLayers(w, best_layers_);
     w.Put(best_val_);
     w.Put(significant_best_);
     w.Put(significant_epoch_);
     w.Put(plateau_best_);
     w.Put(plateau_count_);
   }
-  void Load(CheckpointReader& r) {
-    r.GetLayers(best_layers_);
-    best_val_ = r.Get<double>();
-    significant_best_ = r.Get<double>();
-    significant_epoch_ = r.Get<int>();
-    plateau_best_ = r.Get<double>();
-    plateau_count_ = r.Get<int>();
+  void Load(ByteReader& r) {
+    GetLayers(r, best_layers_);
+    best_val_ = r.Get<double>("state");
+    significant_best_ = r.Get<double>("state");
+    significant_epoch_ = r.Get<int>("state");
+    plateau_best_ = r.Get<double>("state");
+    plateau_count_ = r.Get<int>("state");
   }
 
   // After epoch `epoch`: updates the best weights, *result's best epoch and *lr; returns false
@@ -810,13 +769,13 @@ std::string CheckpointIdentity(const TrainOptions& options, const Eigen::MatrixX
 std::vector<std::uint8_t> SaveCheckpoint(const std::string& identity, int epoch, double lr,
                                          const Mlp& mlp, const Trainer& trainer,
                                          const EpochTracker& tracker, const TrainResult& result) {
-  CheckpointWriter w;
+  ByteWriter w;
   w.Put(kCheckpointMagic);
   w.Put<std::int32_t>(epoch);
   w.Put<std::uint32_t>(static_cast<std::uint32_t>(identity.size()));
   w.bytes().insert(w.bytes().end(), identity.begin(), identity.end());
   w.Put(lr);
-  w.PutLayers(mlp.layers());
+  PutLayers(w, mlp.layers());
   trainer.Save(w);
   tracker.Save(w);
   w.Put<std::int32_t>(result.best_epoch);
@@ -832,15 +791,15 @@ std::vector<std::uint8_t> SaveCheckpoint(const std::string& identity, int epoch,
 }
 
 // Restores SaveCheckpoint's state; returns the first epoch still to run.
-int LoadCheckpoint(std::span<const std::uint8_t> bytes, const std::string& identity, double* lr,
+int ReadCheckpoint(std::span<const std::uint8_t> bytes, const std::string& identity, double* lr,
                    Mlp& mlp, Trainer& trainer, EpochTracker& tracker, TrainResult& result) {
-  CheckpointReader r(bytes);
+  ByteReader r(bytes, "Train: the checkpoint");
   const int epoch = TrainCheckpointEpoch(bytes);
-  r.Get<std::uint64_t>();
-  r.Get<std::int32_t>();
-  const auto id_size = r.Get<std::uint32_t>();
+  r.Get<std::uint64_t>("state");
+  r.Get<std::int32_t>("state");
+  const auto id_size = r.Get<std::uint32_t>("state");
   std::string stored(id_size, '\0');
-  for (char& c : stored) c = static_cast<char>(r.Get<std::uint8_t>());
+  r.Bytes(stored.data(), id_size, "identity");
   if (stored != identity) {
     // Name what differs: "threads 2 in the checkpoint, 1 here".
     const nlohmann::json was = nlohmann::json::parse(stored, nullptr, false);
@@ -856,38 +815,50 @@ int LoadCheckpoint(std::span<const std::uint8_t> bytes, const std::string& ident
         "Train: the checkpoint is of another training (options, data or layer sizes differ: " +
         diff + ")");
   }
-  *lr = r.Get<double>();
-  r.GetLayers(mlp.layers());
+  *lr = r.Get<double>("state");
+  GetLayers(r, mlp.layers());
   trainer.Load(r, epoch + 1);
   tracker.Load(r);
-  result.best_epoch = r.Get<std::int32_t>();
-  const auto epochs = r.Get<std::uint32_t>();
+  result.best_epoch = r.Get<std::int32_t>("state");
+  const auto epochs = r.Get<std::uint32_t>("state");
   if (epochs != static_cast<std::uint32_t>(epoch + 1)) {
     throw std::invalid_argument("Train: the checkpoint after epoch " + std::to_string(epoch) +
                                 " holds " + std::to_string(epochs) + " epochs of curve");
   }
   for (std::uint32_t i = 0; i < epochs; ++i) {
     TrainEpoch e;
-    e.epoch = r.Get<std::int32_t>();
-    e.train_loss = r.Get<double>();
-    e.val_loss = r.Get<double>();
-    e.seconds = r.Get<double>();
-    e.learning_rate = r.Get<double>();
+    e.epoch = r.Get<std::int32_t>("state");
+    e.train_loss = r.Get<double>("state");
+    e.val_loss = r.Get<double>("state");
+    e.seconds = r.Get<double>("state");
+    e.learning_rate = r.Get<double>("state");
     result.curve.push_back(e);
   }
-  if (!r.AtEnd()) throw std::invalid_argument("Train: the checkpoint has bytes after its end");
+  if (r.remaining() != 0)
+    throw std::invalid_argument("Train: the checkpoint has bytes after its end");
   return epoch + 1;
+}
+
+// ReadCheckpoint with a truncated checkpoint reported as the corrupt input it is.
+int LoadCheckpoint(std::span<const std::uint8_t> bytes, const std::string& identity, double* lr,
+                   Mlp& mlp, Trainer& trainer, EpochTracker& tracker, TrainResult& result) {
+  try {
+    return ReadCheckpoint(bytes, identity, lr, mlp, trainer, tracker, result);
+  } catch (const std::runtime_error& e) {
+    throw std::invalid_argument(e.what());
+  }
 }
 
 }  // namespace
 
 int TrainCheckpointEpoch(std::span<const std::uint8_t> state) {
-  CheckpointReader r(state);
-  if (r.Get<std::uint64_t>() != kCheckpointMagic) {
+  ByteReader r(state, "Train: the checkpoint");
+  if (state.size() < sizeof(kCheckpointMagic) + 4 ||
+      r.Get<std::uint64_t>("magic") != kCheckpointMagic) {
     throw std::invalid_argument("Train: not a training checkpoint of this version (" +
                                 std::to_string(state.size()) + " bytes)");
   }
-  return r.Get<std::int32_t>();
+  return r.Get<std::int32_t>("state");
 }
 
 TrainResult Train(const Eigen::MatrixXf& x_train, const Eigen::MatrixXf& y_train,

@@ -8,6 +8,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "base/byte_io.h"
 #include "base/hash.h"
 
 namespace gs360 {
@@ -110,61 +111,20 @@ void ApplyActivation(Activation activation, Block&& a) {
   }
 }
 
-class Writer {
- public:
-  template <typename T>
-  void Put(const T& v) {
-    const auto* p = reinterpret_cast<const std::uint8_t*>(&v);
-    bytes_.insert(bytes_.end(), p, p + sizeof(T));
-  }
-  void PutFloats(const float* data, std::size_t n) {
-    const auto* p = reinterpret_cast<const std::uint8_t*>(data);
-    bytes_.insert(bytes_.end(), p, p + n * sizeof(float));
-  }
-  void PutVector(const Eigen::VectorXf& v) {
-    PutFloats(v.data(), static_cast<std::size_t>(v.size()));
-  }
-  std::vector<std::uint8_t>& bytes() { return bytes_; }
-
- private:
-  std::vector<std::uint8_t> bytes_;
-};
-
-class Reader {
- public:
-  explicit Reader(std::span<const std::uint8_t> bytes) : bytes_(bytes) {}
-  void Need(std::size_t n, const char* what) const {
-    if (bytes_.size() - pos_ < n) {
-      throw std::runtime_error("Mlp::Deserialize: truncated data while reading " +
-                               std::string(what) + " at byte " + std::to_string(pos_) + " of " +
-                               std::to_string(bytes_.size()));
+// Floats that must all be finite (weights, normalisation): a NaN in a model is corruption.
+void GetFiniteFloats(ByteReader& r, float* out, std::size_t n, const std::string& what) {
+  r.GetArray(out, n, what.c_str());
+  for (std::size_t i = 0; i < n; ++i) {
+    if (!std::isfinite(out[i])) {
+      throw std::runtime_error("Mlp::Deserialize: non-finite value " + std::to_string(out[i]) +
+                               " in " + what + " at index " + std::to_string(i));
     }
   }
-  template <typename T>
-  T Get(const char* what) {
-    Need(sizeof(T), what);
-    T v;
-    std::memcpy(&v, bytes_.data() + pos_, sizeof(T));
-    pos_ += sizeof(T);
-    return v;
-  }
-  void GetFloats(float* out, std::size_t n, const std::string& what) {
-    Need(n * sizeof(float), what.c_str());
-    std::memcpy(out, bytes_.data() + pos_, n * sizeof(float));
-    pos_ += n * sizeof(float);
-    for (std::size_t i = 0; i < n; ++i) {
-      if (!std::isfinite(out[i])) {
-        throw std::runtime_error("Mlp::Deserialize: non-finite value " + std::to_string(out[i]) +
-                                 " in " + what + " at index " + std::to_string(i));
-      }
-    }
-  }
-  std::size_t pos() const { return pos_; }
+}
 
- private:
-  std::span<const std::uint8_t> bytes_;
-  std::size_t pos_ = 0;
-};
+void PutVector(ByteWriter& w, const Eigen::VectorXf& v) {
+  w.PutArray(v.data(), static_cast<std::size_t>(v.size()));
+}
 
 }  // namespace
 
@@ -317,7 +277,7 @@ void Mlp::Encode(Eigen::Ref<Eigen::MatrixXf> a0) const {
 
 std::vector<std::uint8_t> Mlp::Serialize() const {
   if (sizes_.empty()) throw std::invalid_argument("Mlp::Serialize: empty network");
-  Writer w;
+  ByteWriter w;
   for (char c : kMagic) w.Put(c);
   w.Put(kFormatVersion);
   w.Put(ActivationCode(activation_));
@@ -326,15 +286,15 @@ std::vector<std::uint8_t> Mlp::Serialize() const {
   w.Put(static_cast<std::int32_t>(fourier_.inputs));
   w.Put(static_cast<std::int32_t>(fourier_.frequencies));
   w.Put(fourier_.base);
-  w.PutVector(input_mean_);
-  w.PutVector(input_scale_);
-  w.PutVector(output_mean_);
-  w.PutVector(output_scale_);
+  PutVector(w, input_mean_);
+  PutVector(w, input_scale_);
+  PutVector(w, output_mean_);
+  PutVector(w, output_scale_);
   for (const MlpLayer& layer : layers_) {
     // Row-major [out, in], as ONNX / PyTorch store Gemm weights.
     const Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> rm = layer.weight;
-    w.PutFloats(rm.data(), static_cast<std::size_t>(rm.size()));
-    w.PutVector(layer.bias);
+    w.PutArray(rm.data(), static_cast<std::size_t>(rm.size()));
+    PutVector(w, layer.bias);
   }
   const std::uint64_t checksum = Hasher().Add(w.bytes().data(), w.bytes().size()).Digest();
   w.Put(checksum);
@@ -342,9 +302,8 @@ std::vector<std::uint8_t> Mlp::Serialize() const {
 }
 
 Mlp Mlp::Deserialize(std::span<const std::uint8_t> bytes) {
-  Reader r(bytes);
-  r.Need(sizeof(kMagic), "magic");
-  if (std::memcmp(bytes.data(), kMagic, sizeof(kMagic)) != 0) {
+  ByteReader r(bytes, "Mlp::Deserialize");
+  if (bytes.size() < sizeof(kMagic) || std::memcmp(bytes.data(), kMagic, sizeof(kMagic)) != 0) {
     throw std::runtime_error("Mlp::Deserialize: bad magic (not a GS360MLP blob)");
   }
   for (std::size_t i = 0; i < sizeof(kMagic); ++i) r.Get<char>("magic");
@@ -427,10 +386,10 @@ Mlp Mlp::Deserialize(std::span<const std::uint8_t> bytes) {
   mlp.input_scale_.resize(in);
   mlp.output_mean_.resize(out);
   mlp.output_scale_.resize(out);
-  r.GetFloats(mlp.input_mean_.data(), in, "input mean");
-  r.GetFloats(mlp.input_scale_.data(), in, "input scale");
-  r.GetFloats(mlp.output_mean_.data(), out, "output mean");
-  r.GetFloats(mlp.output_scale_.data(), out, "output scale");
+  GetFiniteFloats(r, mlp.input_mean_.data(), in, "input mean");
+  GetFiniteFloats(r, mlp.input_scale_.data(), in, "input scale");
+  GetFiniteFloats(r, mlp.output_mean_.data(), out, "output mean");
+  GetFiniteFloats(r, mlp.output_scale_.data(), out, "output scale");
   for (int i = 0; i < in; ++i) {
     if (!(mlp.input_scale_[i] > 0.0f)) {
       throw std::runtime_error("Mlp::Deserialize: input scale[" + std::to_string(i) +
@@ -448,10 +407,11 @@ Mlp Mlp::Deserialize(std::span<const std::uint8_t> bytes) {
     const std::string name = "layer " + std::to_string(k);
     Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> rm(
         sizes[k + 1], k == 0 ? first_in : sizes[k]);
-    r.GetFloats(rm.data(), static_cast<std::size_t>(rm.size()), name + " weight");
+    GetFiniteFloats(r, rm.data(), static_cast<std::size_t>(rm.size()), name + " weight");
     mlp.layers_[k].weight = rm;
     mlp.layers_[k].bias.resize(sizes[k + 1]);
-    r.GetFloats(mlp.layers_[k].bias.data(), static_cast<std::size_t>(sizes[k + 1]), name + " bias");
+    GetFiniteFloats(r, mlp.layers_[k].bias.data(), static_cast<std::size_t>(sizes[k + 1]),
+                    name + " bias");
   }
   return mlp;
 }

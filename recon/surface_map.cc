@@ -13,11 +13,18 @@
 #include <string>
 #include <thread>
 
+#include "base/byte_io.h"
 #include "base/field_error.h"
 #include "base/hash.h"
 
 namespace gs360 {
 namespace {
+
+template <typename T>
+void GetVector(ByteReader& r, std::vector<T>& out, std::size_t n, const char* what) {
+  out.resize(n);
+  r.GetArray(out.data(), n, what);
+}
 
 static_assert(std::endian::native == std::endian::little,
               "SurfaceMap serialisation assumes a little-endian host");
@@ -56,58 +63,6 @@ Eigen::Matrix<double, 3, 2> RayDerivatives(const FisheyeCamera& camera, const Ei
 }
 
 // Little-endian byte writer / reader.
-class Writer {
- public:
-  explicit Writer(std::size_t reserve) { out_.reserve(reserve); }
-  void Bytes(const void* p, std::size_t n) {
-    const auto* b = static_cast<const std::uint8_t*>(p);
-    out_.insert(out_.end(), b, b + n);
-  }
-  template <typename T>
-  void Pod(const T& v) {
-    Bytes(&v, sizeof(T));
-  }
-  template <typename T>
-  void Array(const std::vector<T>& a) {
-    if (!a.empty()) Bytes(a.data(), a.size() * sizeof(T));
-  }
-  std::vector<std::uint8_t>& out() { return out_; }
-
- private:
-  std::vector<std::uint8_t> out_;
-};
-
-class Reader {
- public:
-  explicit Reader(std::span<const std::uint8_t> bytes) : bytes_(bytes) {}
-  void Bytes(void* p, std::size_t n, const char* what) {
-    if (n > bytes_.size() - pos_) {
-      std::ostringstream os;
-      os << "SurfaceMap::Deserialize: truncated input: " << what << " needs " << n
-         << " bytes at offset " << pos_ << ", only " << (bytes_.size() - pos_) << " left";
-      throw std::runtime_error(os.str());
-    }
-    if (n > 0) std::memcpy(p, bytes_.data() + pos_, n);
-    pos_ += n;
-  }
-  template <typename T>
-  T Pod(const char* what) {
-    T v;
-    Bytes(&v, sizeof(T), what);
-    return v;
-  }
-  template <typename T>
-  void Array(std::vector<T>& a, std::size_t n, const char* what) {
-    a.resize(n);
-    Bytes(a.data(), n * sizeof(T), what);
-  }
-  std::size_t pos() const { return pos_; }
-
- private:
-  std::span<const std::uint8_t> bytes_;
-  std::size_t pos_ = 0;
-};
-
 }  // namespace
 
 void SurfaceMapOptions::Check() const {
@@ -296,73 +251,73 @@ Eigen::Vector2d SurfaceMap::SlopesFromNormal(int u, int v, const Eigen::Vector3d
 
 std::vector<std::uint8_t> SurfaceMap::Serialize() const {
   const std::size_t n = status_.size();
-  Writer w(256 + n * (1 + 18 * sizeof(float) + sizeof(double) + sizeof(float)));
+  ByteWriter w(256 + n * (1 + 18 * sizeof(float) + sizeof(double) + sizeof(float)));
   w.Bytes(kMagic, sizeof(kMagic));
-  w.Pod<std::uint32_t>(kVersion);
-  w.Pod<std::int32_t>(width_);
-  w.Pod<std::int32_t>(height_);
-  w.Pod<double>(options_.max_view_angle_deg);
-  w.Pod<double>(options_.fin_margin_px);
-  w.Pod<std::int32_t>(options_.threads);
+  w.Put<std::uint32_t>(kVersion);
+  w.Put<std::int32_t>(width_);
+  w.Put<std::int32_t>(height_);
+  w.Put<double>(options_.max_view_angle_deg);
+  w.Put<double>(options_.fin_margin_px);
+  w.Put<std::int32_t>(options_.threads);
   const Eigen::Quaterniond& q = cam_from_sensor_.rotation;
   for (double x : {q.w(), q.x(), q.y(), q.z(), cam_from_sensor_.translation.x(),
                    cam_from_sensor_.translation.y(), cam_from_sensor_.translation.z()}) {
-    w.Pod<double>(x);
+    w.Put<double>(x);
   }
   for (int c : {stats_.visible, stats_.fin, stats_.grazing, stats_.no_hit, stats_.outside}) {
-    w.Pod<std::int32_t>(c);
+    w.Put<std::int32_t>(c);
   }
-  w.Pod<double>(stats_.build_seconds);
-  w.Array(status_);
-  w.Array(ray_);
-  w.Array(ray_du_);
-  w.Array(ray_dv_);
-  w.Array(n0_);
-  w.Array(t1_);
-  w.Array(t2_);
-  w.Array(rho0_);
-  w.Array(view_angle_);
+  w.Put<double>(stats_.build_seconds);
+  w.PutArray(status_.data(), status_.size());
+  w.PutArray(ray_.data(), ray_.size());
+  w.PutArray(ray_du_.data(), ray_du_.size());
+  w.PutArray(ray_dv_.data(), ray_dv_.size());
+  w.PutArray(n0_.data(), n0_.size());
+  w.PutArray(t1_.data(), t1_.size());
+  w.PutArray(t2_.data(), t2_.size());
+  w.PutArray(rho0_.data(), rho0_.size());
+  w.PutArray(view_angle_.data(), view_angle_.size());
   Hasher h;
-  h.Add(w.out().data(), w.out().size());
-  w.Pod<std::uint64_t>(h.Digest());
-  return std::move(w.out());
+  h.Add(w.bytes().data(), w.bytes().size());
+  w.Put<std::uint64_t>(h.Digest());
+  return std::move(w.bytes());
 }
 
 SurfaceMap SurfaceMap::Deserialize(std::span<const std::uint8_t> bytes) {
-  Reader r(bytes);
+  ByteReader r(bytes, "SurfaceMap::Deserialize");
   char magic[8];
   r.Bytes(magic, sizeof(magic), "magic");
   if (std::memcmp(magic, kMagic, sizeof(kMagic)) != 0) {
     throw std::runtime_error("SurfaceMap::Deserialize: bad magic (not a gs360 surface map)");
   }
-  const auto version = r.Pod<std::uint32_t>("version");
+  const auto version = r.Get<std::uint32_t>("version");
   if (version != kVersion) {
     throw std::runtime_error("SurfaceMap::Deserialize: unsupported version " +
                              std::to_string(version) + " (this build reads version " +
                              std::to_string(kVersion) + ")");
   }
   SurfaceMap map;
-  map.width_ = r.Pod<std::int32_t>("width");
-  map.height_ = r.Pod<std::int32_t>("height");
+  map.width_ = r.Get<std::int32_t>("width");
+  map.height_ = r.Get<std::int32_t>("height");
   if (map.width_ <= 0 || map.height_ <= 0 || map.width_ > 65536 || map.height_ > 65536) {
     throw std::runtime_error("SurfaceMap::Deserialize: bad image size " +
                              std::to_string(map.width_) + " x " + std::to_string(map.height_));
   }
-  map.options_.max_view_angle_deg = r.Pod<double>("options");
-  map.options_.fin_margin_px = r.Pod<double>("options");
-  map.options_.threads = r.Pod<std::int32_t>("options");
+  map.options_.max_view_angle_deg = r.Get<double>("options");
+  map.options_.fin_margin_px = r.Get<double>("options");
+  map.options_.threads = r.Get<std::int32_t>("options");
   double pose[7];
-  for (double& x : pose) x = r.Pod<double>("pose");
+  for (double& x : pose) x = r.Get<double>("pose");
   map.cam_from_sensor_ = Rigid3d(Eigen::Quaterniond(pose[0], pose[1], pose[2], pose[3]),
                                  Eigen::Vector3d(pose[4], pose[5], pose[6]));
   // Keep the stored rotation bit-exact (the constructor normalises, which may round).
   map.cam_from_sensor_.rotation = Eigen::Quaterniond(pose[0], pose[1], pose[2], pose[3]);
-  map.stats_.visible = r.Pod<std::int32_t>("stats");
-  map.stats_.fin = r.Pod<std::int32_t>("stats");
-  map.stats_.grazing = r.Pod<std::int32_t>("stats");
-  map.stats_.no_hit = r.Pod<std::int32_t>("stats");
-  map.stats_.outside = r.Pod<std::int32_t>("stats");
-  map.stats_.build_seconds = r.Pod<double>("stats");
+  map.stats_.visible = r.Get<std::int32_t>("stats");
+  map.stats_.fin = r.Get<std::int32_t>("stats");
+  map.stats_.grazing = r.Get<std::int32_t>("stats");
+  map.stats_.no_hit = r.Get<std::int32_t>("stats");
+  map.stats_.outside = r.Get<std::int32_t>("stats");
+  map.stats_.build_seconds = r.Get<double>("stats");
 
   const std::size_t n =
       static_cast<std::size_t>(map.width_) * static_cast<std::size_t>(map.height_);
@@ -375,17 +330,17 @@ SurfaceMap SurfaceMap::Deserialize(std::span<const std::uint8_t> bytes) {
        << " bytes, got " << bytes.size();
     throw std::runtime_error(os.str());
   }
-  r.Array(map.status_, n, "status");
-  r.Array(map.ray_, 3 * n, "ray");
-  r.Array(map.ray_du_, 3 * n, "ray_du");
-  r.Array(map.ray_dv_, 3 * n, "ray_dv");
-  r.Array(map.n0_, 3 * n, "n0");
-  r.Array(map.t1_, 3 * n, "t1");
-  r.Array(map.t2_, 3 * n, "t2");
-  r.Array(map.rho0_, n, "rho0");
-  r.Array(map.view_angle_, n, "view_angle");
+  GetVector(r, map.status_, n, "status");
+  GetVector(r, map.ray_, 3 * n, "ray");
+  GetVector(r, map.ray_du_, 3 * n, "ray_du");
+  GetVector(r, map.ray_dv_, 3 * n, "ray_dv");
+  GetVector(r, map.n0_, 3 * n, "n0");
+  GetVector(r, map.t1_, 3 * n, "t1");
+  GetVector(r, map.t2_, 3 * n, "t2");
+  GetVector(r, map.rho0_, n, "rho0");
+  GetVector(r, map.view_angle_, n, "view_angle");
   const std::size_t body = r.pos();
-  const auto stored = r.Pod<std::uint64_t>("checksum");
+  const auto stored = r.Get<std::uint64_t>("checksum");
   Hasher h;
   h.Add(bytes.data(), body);
   if (h.Digest() != stored) {

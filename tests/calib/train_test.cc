@@ -322,7 +322,7 @@ TEST_CASE("a killed training resumes from its checkpoint with bit-identical weig
   TrainCheckpointing truncated;
   truncated.resume_from.assign(last.begin(), last.begin() + static_cast<long>(last.size() / 2));
   CHECK_THROWS_WITH(Train(train.x, train.y, val.x, val.y, o, {}, truncated),
-                    Catch::Contains("checkpoint is truncated"));
+                    Catch::Contains("the checkpoint: truncated input"));
   TrainCheckpointing foreign;
   foreign.resume_from = std::vector<std::uint8_t>(64, 7);
   CHECK_THROWS_WITH(Train(train.x, train.y, val.x, val.y, o, {}, foreign),
