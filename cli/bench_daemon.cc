@@ -134,8 +134,8 @@ int RunDaemonBench(const DaemonBenchOptions& o, bool json) {
   {
     std::ofstream toml(dir / "gs360d.toml");
     toml << "data_dir = \".\"\n[server]\nport = 0\nthreads = " << (o.pollers + o.streams + 16)
-         << "\n[machine]\nuri = \"" << setup.config.machine.uri << "\"\n[camera]\nuri = \""
-         << setup.config.camera.uri << "\"\n";
+         << "\n"
+         << setup.DaemonToml();
   }
   DaemonProcess daemon(FindGs360d(), dir / "gs360d.toml", dir, dir / "gs360d.log");
   DaemonClient client(daemon.url(), "");

@@ -42,13 +42,11 @@ double Since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
-void WriteDaemonConfig(const std::filesystem::path& path, const RunConfig& config) {
+void WriteDaemonConfig(const std::filesystem::path& path, const VirtualSetup& setup) {
   std::ofstream out(path);
   out << "# gs360d for `gs360 demo`: the virtual rig of this process.\n"
          "data_dir = \".\"\n\n[server]\nport = 0\n\n"
-         "[machine]\nuri = \""
-      << config.machine.uri << "\"\n\n[camera]\nuri = \"" << config.camera.uri
-      << "\"\n\n[calibration]\ncheckerboards = \"checkerboards\"\n";
+      << setup.DaemonToml() << "\n[calibration]\ncheckerboards = \"checkerboards\"\n";
   if (!out.flush()) throw std::runtime_error("cannot write " + path.string());
 }
 
@@ -89,7 +87,7 @@ int RunDemo(const DemoOptions& o) {
               rig.FrameUri().c_str(), rig.rig()->Describe().c_str());
   // The lab's checkerboard shots, taken through the (hidden) true lens before assembly.
   const int boards = WriteSimCheckerboards(*rig.rig(), dir / "checkerboards", 16, o.seed);
-  WriteDaemonConfig(dir / "gs360d.toml", config);
+  WriteDaemonConfig(dir / "gs360d.toml", setup);
   DaemonProcess daemon(FindGs360d(), dir / "gs360d.toml", dir, dir / "gs360d.log");
   std::printf("gs360d: %s (data folder %s, log gs360d.log)\ndashboard: %s/\n\n",
               daemon.url().c_str(), dir.c_str(), daemon.url().c_str());

@@ -45,6 +45,12 @@ int WriteSimCheckerboards(const SimRig& rig, const std::filesystem::path& dir, i
   return written;
 }
 
+std::string VirtualSetup::DaemonToml() const {
+  return "[machine]\nuri = \"" + config.machine.uri +
+         "\"\nstatus_interval_ms = " + std::to_string(config.machine.status_interval_ms) +
+         "\n\n[camera]\nuri = \"" + config.camera.uri + "\"\n";
+}
+
 VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t seed,
                               const std::filesystem::path& frame_socket, const std::string& symlink,
                               const std::function<void(VirtualRigOptions&)>& tweak) {

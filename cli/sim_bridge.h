@@ -20,6 +20,9 @@ SimRigOptions SimRigOptionsFor(const RigConfig& rig, std::uint64_t seed = 1);
 struct VirtualSetup {
   RunConfig config;
   std::unique_ptr<VirtualRig> rig;
+  // The [machine] and [camera] sections of a gs360d.toml for this rig (its pty, its camera
+  // socket, the status interval its time scale allows).
+  std::string DaemonToml() const;
 };
 // Checkerboard images through the rig's TRUE lens (what a lab shoots before assembly), written
 // as PNG files into `dir` (created). Returns the number written.

@@ -120,6 +120,9 @@ run_sanitized() {
     export LSAN_OPTIONS="suppressions=$here/tests/lsan.supp:print_suppressions=0"
     export UBSAN_OPTIONS="$common:print_stacktrace=1"
     export TSAN_OPTIONS="$common:suppressions=$here/tests/tsan.supp:second_deadlock_stack=1"
+    # Instrumented code on a shared machine runs several times slower: the tests' deadlines that
+    # only catch a hang (and the virtual camera's capture timeout) scale by this (tests/wait.h).
+    export GS360_TEST_TIME_SCALE=4
     ctest --output-on-failure -j "$jobs" -R "$include" "${exclude[@]}"
   ) || rc=$?
   local reports=("$logs"/report.*)

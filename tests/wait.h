@@ -7,13 +7,36 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cstdlib>
+#include <string>
 #include <thread>
 
 namespace gs360::test {
 
+// How much slower than a Release build the code under test runs: GS360_TEST_TIME_SCALE (default
+// 1; scripts/sanitize.sh sets it, a sanitizer build on a loaded machine being several times
+// slower). Every deadline of the tests that only catches a hang scales by it, never one that a
+// test asserts.
+inline double TimeScale() {
+  const char* s = std::getenv("GS360_TEST_TIME_SCALE");
+  if (s == nullptr) return 1.0;
+  try {
+    return std::max(1.0, std::stod(s));
+  } catch (...) {
+    return 1.0;
+  }
+}
+
+template <typename Duration>
+std::chrono::milliseconds Scaled(Duration d) {
+  return std::chrono::milliseconds(
+      static_cast<long long>(std::chrono::duration<double, std::milli>(d).count() * TimeScale()));
+}
+
+// The deadline `timeout` is Scaled().
 template <typename Predicate>
 bool WaitUntil(Predicate done, std::chrono::milliseconds timeout) {
-  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  const auto deadline = std::chrono::steady_clock::now() + Scaled(timeout);
   auto poll = std::chrono::milliseconds(1);
   while (!done()) {
     if (std::chrono::steady_clock::now() >= deadline) return done();

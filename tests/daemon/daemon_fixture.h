@@ -21,8 +21,11 @@ namespace gs360::test {
 inline std::string RigToml(const RunConfig& config, const std::string& extra = "",
                            double reconnect_timeout_s = 10.0) {
   return "data_dir = \"data\"\n" + extra + "\n[server]\nport = 0\n[machine]\nuri = \"" +
-         config.machine.uri + "\"\n[camera]\nuri = \"" + config.camera.uri +
-         "\"\n[engine]\nreconnect_timeout_s = " + std::to_string(reconnect_timeout_s) +
+         config.machine.uri +
+         "\"\nstatus_interval_ms = " + std::to_string(config.machine.status_interval_ms) +
+         "\n[camera]\nuri = \"" + config.camera.uri +
+         "\"\ncapture_timeout_ms = " + std::to_string(config.camera.capture.timeout.count()) +
+         "\n[engine]\nreconnect_timeout_s = " + std::to_string(reconnect_timeout_s) +
          "\n[plan]\nreference_every = 25\n";
 }
 

@@ -14,6 +14,7 @@
 #include "daemon/run_config.h"
 #include "daemon/run_engine.h"
 #include "sim/virtual_rig.h"
+#include "tests/wait.h"
 
 namespace gs360::test {
 
@@ -48,6 +49,8 @@ struct RigFixture {
     config = setup.config;
     rig = std::move(setup.rig);
     config.engine.reconnect_timeout_s = 10.0;
+    // The virtual camera renders in this process: slower under a sanitizer.
+    config.camera.capture.timeout = Scaled(config.camera.capture.timeout);
   }
   ~RigFixture() {
     rig.reset();
