@@ -423,6 +423,20 @@ bool GrblClient::Running(const std::string& what) {
   return true;
 }
 
+void GrblClient::DiscardEarlierSessionReplies(milliseconds quiet, milliseconds limit) {
+  const auto deadline = Clock::now() + limit;
+  std::unique_lock lock(mu_);
+  while (connected_ && Clock::now() < deadline && Clock::now() - last_rx_ < quiet) {
+    cv_.wait_for(lock, milliseconds(10));
+  }
+  if (stats_.stray_replies > 0 || latest_status_) {
+    spdlog::info("grbl: discarded what an earlier session was sent ({} stray reply lines)", stats_.stray_replies);
+  }
+  // Nothing of this session is in flight yet: every ok so far was an earlier session's.
+  stray_since_welcome_ = 0;
+  latest_status_.reset();
+}
+
 GrblMachineInfo GrblClient::Handshake() {
   std::string what;
   std::uint64_t resets_before = 0;
@@ -466,7 +480,10 @@ GrblMachineInfo GrblClient::Handshake() {
     return cv_.wait_for(lock, t, [&] { return stats_.resets > resets_before || !connected_; }) &&
            connected_;
   };
-  if (!wait_welcome(options_.welcome_timeout) && !Running(what)) {
+  const bool welcomed = wait_welcome(options_.welcome_timeout);
+  const bool running = !welcomed && Running(what);
+  if (running) DiscardEarlierSessionReplies(milliseconds(100), milliseconds(1000));
+  if (!welcomed && !running) {
     spdlog::info("grbl: no welcome from {} within {} ms, sending a soft reset", what,
                  options_.welcome_timeout.count());
     WriteRealtime('\x18');
@@ -531,6 +548,10 @@ void GrblClient::ReaderLoop(Transport* transport) {
     }
     if (n == 0) continue;
     const auto t = Clock::now();
+    {
+      std::lock_guard lock(mu_);
+      last_rx_ = t;
+    }
     lines.clear();
     splitter_.Feed(buf.data(), n, &lines);
     for (const std::string& line : lines) HandleLine(line, t);

@@ -284,6 +284,12 @@ class GrblClient {
   GrblMachineInfo Handshake();
   // During the handshake, without a welcome: true when the controller answers a status query.
   bool Running(const std::string& what);
+  // After Running(): waits until nothing has arrived for `quiet` (at most `limit`), then forgets
+  // every reply and status report received so far. A controller that did not reset may still
+  // send what an earlier session asked for (its oks, its status reports) after the port opens;
+  // taken as answers, they would match this session's lines or report a stale position.
+  void DiscardEarlierSessionReplies(std::chrono::milliseconds quiet,
+                                    std::chrono::milliseconds limit);
   void StartThreads();
   void StopThreads();
   void ReaderLoop(Transport* transport);
@@ -331,6 +337,7 @@ class GrblClient {
   int rx_buffer_bytes_ = 128;
   GrblMachineInfo info_;
   std::optional<GrblStatusSample> latest_status_;
+  std::chrono::steady_clock::time_point last_rx_{};  // when the reader last got bytes
   std::optional<Eigen::Vector3d> last_wco_;
   GrblClientStats stats_;
   GrblLineSplitter splitter_;  // reader thread only

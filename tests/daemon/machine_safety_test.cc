@@ -7,6 +7,7 @@
 
 #include <chrono>
 #include <string>
+#include <thread>
 
 #include "gcode/grbl_client.h"
 #include "gcode/probe_program.h"
@@ -264,11 +265,38 @@ TEST_CASE("an earlier session's bytes on the line are discarded, not taken as re
   o.status_poll_interval = 0ms;
   auto client = GrblClient::ForUri(f.rig->PtyPath(), TransportOptions{}, o);
   client->Connect();
-  const auto status = client->LatestStatus();
+  const auto status = client->QueryStatus(2s);
   REQUIRE(status);
   REQUIRE(status->machine_position);
   CHECK(status->machine_position->norm() < 1e-9);  // the controller's own report, not the stale one
   CHECK(client->Stats().replies == 2);             // $I and $$ only
+  CHECK(client->Send("$I").Wait(5s).Ok());
+}
+
+TEST_CASE("an earlier session's replies arriving after the port opens are not this one's",
+          "[daemon][safety]") {
+  RigFixture f("stalelate", 30, 0.0);
+  GrblClientOptions o;
+  o.status_poll_interval = 0ms;
+  // The earlier session: it took the controller's power-up welcome, so none greets the next.
+  GrblClient::ForUri(f.rig->PtyPath(), TransportOptions{}, o)->Connect();
+  auto client = GrblClient::ForUri(f.rig->PtyPath(), TransportOptions{}, o);
+  // While the client waits for a welcome that a controller without a reset never sends, what an
+  // earlier host asked for arrives: its ok and a status report with a made-up position.
+  std::thread late([&] {
+    test::WaitUntil([&] { return f.rig->cnc().HostAttached(); }, 5s);
+    // The scenario: they come half a second after the port opened, after the client read what
+    // was already waiting (well inside its 2.5 s wait for a welcome).
+    std::this_thread::sleep_for(500ms);
+    f.rig->cnc().SendRaw("ok\r\n<Idle|MPos:1.000,2.000,3.000|FS:0,0>\r\n");
+  });
+  client->Connect();
+  late.join();
+  CHECK(client->StrayRepliesSinceWelcome() == 0);  // not taken for lines run after a restart
+  const auto status = client->QueryStatus(2s);
+  REQUIRE(status);
+  REQUIRE(status->machine_position);
+  CHECK(status->machine_position->norm() < 1e-9);
   CHECK(client->Send("$I").Wait(5s).Ok());
 }
 
