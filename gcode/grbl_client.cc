@@ -430,7 +430,8 @@ void GrblClient::DiscardEarlierSessionReplies(milliseconds quiet, milliseconds l
     cv_.wait_for(lock, milliseconds(10));
   }
   if (stats_.stray_replies > 0 || latest_status_) {
-    spdlog::info("grbl: discarded what an earlier session was sent ({} stray reply lines)", stats_.stray_replies);
+    spdlog::info("grbl: discarded what an earlier session was sent ({} stray reply lines)",
+                 stats_.stray_replies);
   }
   // Nothing of this session is in flight yet: every ok so far was an earlier session's.
   stray_since_welcome_ = 0;
