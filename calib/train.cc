@@ -773,7 +773,7 @@ std::vector<std::uint8_t> SaveCheckpoint(const std::string& identity, int epoch,
   w.Put(kCheckpointMagic);
   w.Put<std::int32_t>(epoch);
   w.Put<std::uint32_t>(static_cast<std::uint32_t>(identity.size()));
-  w.bytes().insert(w.bytes().end(), identity.begin(), identity.end());
+  w.PutArray(identity.data(), identity.size());
   w.Put(lr);
   PutLayers(w, mlp.layers());
   trainer.Save(w);
@@ -798,6 +798,11 @@ int ReadCheckpoint(std::span<const std::uint8_t> bytes, const std::string& ident
   r.Get<std::uint64_t>("state");
   r.Get<std::int32_t>("state");
   const auto id_size = r.Get<std::uint32_t>("state");
+  if (id_size > r.remaining()) {  // corrupt: do not allocate what is not there
+    throw std::invalid_argument("Train: the checkpoint is truncated or corrupt (identity of " +
+                                std::to_string(id_size) + " bytes, " +
+                                std::to_string(r.remaining()) + " left)");
+  }
   std::string stored(id_size, '\0');
   r.Bytes(stored.data(), id_size, "identity");
   if (stored != identity) {
