@@ -8,20 +8,11 @@
 
 #include "plan/motion_estimate.h"
 #include "sim/grbl_planner.h"
+#include "tests/plan/lcg.h"
 
 using namespace gs360;
 
-namespace {
-
-struct Lcg {
-  std::uint64_t s;
-  double Uniform() {
-    s = s * 6364136223846793005ull + 1442695040888963407ull;
-    return static_cast<double>(s >> 11) * 0x1.0p-53;
-  }
-};
-
-}  // namespace
+using test::Lcg;
 
 TEST_CASE("Path times agree with the virtual CNC's planner on random paths", "[motion][sim]") {
   MachineSettings mine;

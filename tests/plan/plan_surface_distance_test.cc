@@ -7,20 +7,11 @@
 #include <limits>
 
 #include "plan/surface_distance.h"
+#include "tests/plan/lcg.h"
 
 using namespace gs360;
 
-namespace {
-
-struct Lcg {
-  std::uint64_t s;
-  double Uniform() {
-    s = s * 6364136223846793005ull + 1442695040888963407ull;
-    return static_cast<double>(s >> 11) * 0x1.0p-53;
-  }
-};
-
-}  // namespace
+using test::Lcg;
 
 TEST_CASE("Profile distance matches the analytic closest point", "[plan]") {
   for (SensorShape shape : {SensorShape::kCylinderCap, SensorShape::kCone, SensorShape::kSpline}) {
