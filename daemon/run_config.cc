@@ -117,6 +117,10 @@ void EngineConfig::Check() const {
   if (!(recheck_max_shift_px > 0.0)) {
     Invalid("engine.recheck_max_shift_px", std::to_string(recheck_max_shift_px), "must be > 0");
   }
+  if (!(recheck_min_peak_dn > 0.0 && recheck_min_peak_dn < 442.0)) {
+    Invalid("engine.recheck_min_peak_dn", std::to_string(recheck_min_peak_dn),
+            "must be in (0, 442) DN");
+  }
   if (!(sync_timeout_s > 0.0)) {
     Invalid("engine.sync_timeout_s", std::to_string(sync_timeout_s), "must be > 0");
   }
@@ -180,6 +184,7 @@ nlohmann::json RunConfigToJson(const RunConfig& c) {
        {{"max_attempts", c.engine.max_attempts},
         {"recheck_probes", c.engine.recheck_probes},
         {"recheck_max_shift_px", c.engine.recheck_max_shift_px},
+        {"recheck_min_peak_dn", c.engine.recheck_min_peak_dn},
         {"sync_timeout_s", c.engine.sync_timeout_s},
         {"reconnect_timeout_s", c.engine.reconnect_timeout_s},
         {"max_recoveries", c.engine.max_recoveries},
@@ -225,6 +230,7 @@ void ReadRunConfig(JsonReader& r, RunConfig& c) {
     o.Get("max_attempts", c.engine.max_attempts);
     o.Get("recheck_probes", c.engine.recheck_probes);
     o.Get("recheck_max_shift_px", c.engine.recheck_max_shift_px);
+    o.Get("recheck_min_peak_dn", c.engine.recheck_min_peak_dn);
     o.Get("sync_timeout_s", c.engine.sync_timeout_s);
     o.Get("reconnect_timeout_s", c.engine.reconnect_timeout_s);
     o.Get("max_recoveries", c.engine.max_recoveries);

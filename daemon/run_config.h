@@ -38,6 +38,10 @@ struct EngineConfig {
   int max_attempts = 2;               // per probe, across the whole run (resume included)
   int recheck_probes = 3;             // committed probes re-pressed on resume (0 = none)
   double recheck_max_shift_px = 1.5;  // impression centre shift that means the sensor moved
+  // Only clear impressions are compared: a peak colour difference of at least this many DN
+  // (8-bit scale) in a blob smaller than a quarter of the frame each way. A faint one (a probe at
+  // a fin's edge) has a centroid that noise and LED drift move by tens of pixels.
+  double recheck_min_peak_dn = 20.0;
   double sync_timeout_s = 120.0;      // longest wait for a press's G4 ok
   double reconnect_timeout_s = 60.0;  // how long a vanished port is waited for
   int max_recoveries = 10;            // resets / reconnects handled in one session before giving up

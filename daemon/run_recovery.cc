@@ -332,23 +332,60 @@ bool RunSession::Recover(const Step& step) {
   return true;
 }
 
+namespace {
+
+// A stored or re-pressed impression whose centre can be trusted to a pixel: a clear peak in a
+// compact blob. Drift or noise alone gives a faint peak spread over much of the frame.
+std::optional<Impression> ClearImpression(const cv::Mat& press, const cv::Mat& reference,
+                                          double min_peak_dn) {
+  std::optional<Impression> found = FindImpression(press, reference);
+  if (!found || found->peak_dn < min_peak_dn) return std::nullopt;
+  if (found->box.width > press.cols / 4 || found->box.height > press.rows / 4) return std::nullopt;
+  return found;
+}
+
+}  // namespace
+
+std::vector<RunSession::RecheckPick> RunSession::PickRecheckProbes(
+    const std::vector<CapturedProbe>& captured, int want) const {
+  // Spread over the run (early, middle, late); from each spot the nearest probe whose stored
+  // impression is clear, looking at most kSearch probes either way.
+  constexpr int kSearch = 12;
+  std::vector<RecheckPick> picks;
+  std::vector<bool> taken(captured.size(), false);
+  const auto n = static_cast<std::ptrdiff_t>(captured.size());
+  for (int i = 0; i < want; ++i) {
+    const std::ptrdiff_t spot =
+        want == 1 ? n - 1 : static_cast<std::ptrdiff_t>(i) * (n - 1) / (want - 1);
+    for (int step = 0; step <= 2 * kSearch; ++step) {
+      const std::ptrdiff_t k = spot + (step % 2 == 0 ? step / 2 : -(step + 1) / 2);
+      if (k < 0 || k >= n || taken[static_cast<std::size_t>(k)]) continue;
+      const CapturedProbe& probe = captured[static_cast<std::size_t>(k)];
+      const auto ref_info = db_.NearestReferenceFrame(run_id_, probe.frame_time);
+      if (!ref_info) continue;
+      const auto stored =
+          ClearImpression(db_.LoadFrame(probe.frame_id), db_.LoadFrame(ref_info->id),
+                          config_.engine.recheck_min_peak_dn);
+      if (!stored) continue;
+      taken[static_cast<std::size_t>(k)] = true;
+      picks.push_back({&probe, *stored});
+      break;
+    }
+  }
+  return picks;
+}
+
 std::optional<Ask> RunSession::RecheckSensor() {
   const auto captured = db_.ListCapturedProbes(run_id_);
   const int want = std::min<int>(config_.engine.recheck_probes, static_cast<int>(captured.size()));
   if (want == 0) return std::nullopt;
   Publish("rechecking");
-  // Spread over the run: early, middle and late probes.
-  std::vector<std::size_t> picks;
-  for (int i = 0; i < want; ++i) {
-    picks.push_back(want == 1 ? captured.size() - 1
-                              : static_cast<std::size_t>(i) * (captured.size() - 1) /
-                                    static_cast<std::size_t>(want - 1));
-  }
+  const std::vector<RecheckPick> picks = PickRecheckProbes(captured, want);
   cv::Mat reference;
   int compared = 0;
   double worst = 0.0;
   for (std::size_t k = 0; k < picks.size(); ++k) {
-    const CapturedProbe& old = captured[picks[k]];
+    const CapturedProbe& old = *picks[k].probe;
     const PlannedProbe& planned = plan_.probes.at(static_cast<std::size_t>(old.probe.plan_index));
     Press press;
     const Step step = PressProbe(planned, k == 0, &press);
@@ -357,20 +394,17 @@ std::optional<Ask> RunSession::RecheckSensor() {
                          " failed: " + step.message};
     }
     if (k == 0) reference = press.reference;
-    const cv::Mat stored = db_.LoadFrame(old.frame_id);
-    const auto stored_ref_info = db_.NearestReferenceFrame(run_id_, old.frame_time);
-    if (!stored_ref_info || reference.empty()) continue;
-    const cv::Mat stored_ref = db_.LoadFrame(stored_ref_info->id);
-    const auto a = FindImpression(stored, stored_ref);
-    const auto b = FindImpression(press.frame, reference);
-    if (!a || !b) continue;
-    const double shift = (a->centroid - b->centroid).norm();
+    if (reference.empty()) continue;
+    const Impression& a = picks[k].stored;
+    const auto b = ClearImpression(press.frame, reference, config_.engine.recheck_min_peak_dn);
+    if (!b) continue;
+    const double shift = (a.centroid - b->centroid).norm();
     worst = std::max(worst, shift);
     ++compared;
     if (shift > config_.engine.recheck_max_shift_px) {
       return Ask{"", "the sensor has moved since the run was interrupted: probe " +
                          std::to_string(old.probe.plan_index) + "'s impression was at (" +
-                         FormatFixed(a->centroid.x(), 1) + ", " + FormatFixed(a->centroid.y(), 1) +
+                         FormatFixed(a.centroid.x(), 1) + ", " + FormatFixed(a.centroid.y(), 1) +
                          ") px and is now at (" + FormatFixed(b->centroid.x(), 1) + ", " +
                          FormatFixed(b->centroid.y(), 1) + ") px, a shift of " +
                          FormatFixed(shift, 2) + " px (limit " +
@@ -380,9 +414,13 @@ std::optional<Ask> RunSession::RecheckSensor() {
   }
   if (compared == 0) {
     const std::string why =
-        "resume: none of the " + std::to_string(want) +
-        " re-pressed probes showed an impression "
-        "comparable with its stored frame, so the sensor's position could not be verified";
+        (picks.empty()
+             ? "resume: no committed probe near the " + std::to_string(want) +
+                   " spots checked has a clear stored impression (engine.recheck_min_peak_dn)"
+             : "resume: none of the " + std::to_string(picks.size()) +
+                   " re-pressed probes showed a clear impression to compare with its stored "
+                   "frame") +
+        ", so the sensor's position could not be verified";
     if (overrides_.confirm != "sensor" && config_.engine.unverified_resume == "ask") {
       return Ask{"sensor", why +
                                ". Nothing else was pressed. Check that the sensor sits as it "

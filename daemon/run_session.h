@@ -14,6 +14,7 @@
 #include <opencv2/core/mat.hpp>
 
 #include "capture/frame_source.h"
+#include "capture/impression.h"
 #include "daemon/run_engine.h"
 #include "gcode/grbl_client.h"
 #include "gcode/probe_program.h"
@@ -133,6 +134,14 @@ class RunSession {
   // an Ask with `what` empty when the sensor moved (the run fails), "sensor" when nothing could
   // be compared (the run asks, unless the user confirmed or the config says continue).
   std::optional<Ask> RecheckSensor();
+  // Up to `want` committed probes to re-press, spread over the run, each with its stored
+  // impression (only clear ones: engine.recheck_min_peak_dn).
+  struct RecheckPick {
+    const CapturedProbe* probe;  // into the caller's list
+    Impression stored;
+  };
+  std::vector<RecheckPick> PickRecheckProbes(const std::vector<CapturedProbe>& captured,
+                                             int want) const;
   // The run stops, without moving, until the user confirms what `ask` says.
   RunReport Awaiting(const Ask& ask);
   // At the end of a session: waits for the motion sent to end and records its end point as the

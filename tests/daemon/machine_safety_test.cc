@@ -6,13 +6,16 @@
 #include <catch2/catch.hpp>
 
 #include <chrono>
+#include <set>
 #include <string>
 #include <thread>
 
 #include "gcode/grbl_client.h"
 #include "gcode/probe_program.h"
 #include "rig_fixture.h"
+#include "storage/frame_codec.h"
 #include "storage/run_database.h"
+#include "tests/storage/storage_test_util.h"
 #include "tests/wait.h"
 
 using namespace gs360;
@@ -365,6 +368,52 @@ TEST_CASE("resume asks when the re-pressed probes cannot be compared", "[daemon]
   CHECK_THAT(asked.message, Contains("could not be verified") && Contains("--confirm sensor"));
   CHECK(RunDatabase(f.db).GetRun(run_id)->awaiting == "sensor");
   CHECK(RunDatabase(f.db).CountProbes(run_id).captured == before);  // nothing else pressed
+}
+
+TEST_CASE("resume re-presses only probes whose stored impression is clear", "[daemon][safety]") {
+  RigFixture f("faint", 40, 0.0);
+  RunEngine engine(f.db);
+  const auto run_id = engine.CreateRun(f.config);
+  AtProbe(engine, 12, [&] { engine.RequestStop(); });
+  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
+
+  // Every stored press frame but three becomes its reference brightened by 8 DN: a faint change
+  // over the whole frame, like a probe at a fin's edge under LED drift. Its "impression" centre
+  // is the frame's middle, nowhere near where a re-press marks the gel.
+  std::vector<std::pair<std::int64_t, EncodedFrame>> faint;
+  {
+    RunDatabase db(f.db);
+    const auto captured = db.ListCapturedProbes(run_id);
+    REQUIRE(captured.size() >= 12);
+    const std::set<std::size_t> keep = {1, captured.size() / 2 + 2, captured.size() - 3};
+    for (std::size_t i = 0; i < captured.size(); ++i) {
+      if (keep.count(i)) continue;
+      const auto ref = db.NearestReferenceFrame(run_id, captured[i].frame_time);
+      REQUIRE(ref);
+      cv::Mat drifted;
+      db.LoadFrame(ref->id).convertTo(drifted, -1, 1.0, 8.0);
+      faint.emplace_back(captured[i].frame_id, EncodeFrame(drifted));
+    }
+  }
+  {
+    test::RawDb raw(f.db);
+    for (const auto& [id, frame] : faint) {
+      raw.ExecWithBlob("UPDATE frames SET png = ?, size = " + std::to_string(frame.png.size()) +
+                           ", checksum = '" + BlobChecksum(frame.png) +
+                           "' WHERE id = " + std::to_string(id),
+                       frame.png);
+    }
+  }
+
+  const RunReport r = engine.Execute(run_id);
+  CHECK(r.outcome == RunOutcome::kDone);
+  RunDatabase db(f.db);
+  bool matched = false;
+  for (const EventRecord& e : db.ListEvents(run_id)) {
+    if (e.message.find("3 re-pressed probes match") != std::string::npos) matched = true;
+    CHECK_THAT(e.message, !Contains("sensor has moved"));
+  }
+  CHECK(matched);
 }
 
 TEST_CASE("a board that resets when its port opens: each session homes again, nothing is lost",
