@@ -68,6 +68,10 @@ VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t
   VirtualSetup setup;
   setup.rig = std::make_unique<VirtualRig>(options);
   config.machine.uri = symlink.empty() ? setup.rig->PtyPath() : symlink;
+  // At instant motion nothing paces a probe but the host: the virtual firmware answers status
+  // queries at any rate (a report is ~5 ms of 115200 baud), so asking at GRBL's 5 Hz would be the
+  // bottleneck.
+  if (time_scale == 0.0) config.machine.status_interval_ms = 10;
   config.camera.uri = setup.rig->FrameUri();
   setup.config = std::move(config);
   return setup;
