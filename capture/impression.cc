@@ -35,16 +35,24 @@ cv::Mat DifferenceMagnitude(const cv::Mat& press, const cv::Mat& reference, cons
   if (!mask.empty() && (mask.type() != CV_8U || mask.size() != press.size())) {
     throw std::invalid_argument(std::string(caller) + ": mask must be CV_8U of the image size");
   }
-  cv::Mat p, r;
-  press.convertTo(p, CV_32FC3);
-  reference.convertTo(r, CV_32FC3);
-  cv::Mat diff = p - r;
-  cv::Mat sq;
-  cv::multiply(diff, diff, sq);
-  cv::Mat magnitude;
-  cv::transform(sq, magnitude, cv::Matx13f(1.0f, 1.0f, 1.0f));  // sum of the three channels
+  // One pass from the 8-bit pixels to the sum of squared channel differences (exact in float:
+  // at most 3 * 255^2 < 2^24), then OpenCV's vectorised square root: no 3-channel float
+  // temporaries, which made this several times slower (each a fresh 3.7 MB allocation).
+  cv::Mat magnitude(press.size(), CV_32F);
+  for (int y = 0; y < press.rows; ++y) {
+    const std::uint8_t* a = press.ptr<std::uint8_t>(y);
+    const std::uint8_t* b = reference.ptr<std::uint8_t>(y);
+    const std::uint8_t* m = mask.empty() ? nullptr : mask.ptr<std::uint8_t>(y);
+    float* out = magnitude.ptr<float>(y);
+    for (int x = 0; x < press.cols; ++x) {
+      const int d0 = a[3 * x] - b[3 * x];
+      const int d1 = a[3 * x + 1] - b[3 * x + 1];
+      const int d2 = a[3 * x + 2] - b[3 * x + 2];
+      const int sum = d0 * d0 + d1 * d1 + d2 * d2;
+      out[x] = m && m[x] == 0 ? 0.0f : static_cast<float>(sum);
+    }
+  }
   cv::sqrt(magnitude, magnitude);
-  if (!mask.empty()) magnitude.setTo(0.0f, mask == 0);
   if (blur_sigma_px > 0.0) cv::GaussianBlur(magnitude, magnitude, cv::Size(), blur_sigma_px);
   return magnitude;
 }

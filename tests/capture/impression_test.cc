@@ -1,5 +1,6 @@
 #include <catch2/catch.hpp>
 
+#include <cmath>
 #include <opencv2/imgproc.hpp>
 #include <random>
 
@@ -40,4 +41,30 @@ TEST_CASE("FindImpression: no contact and masked pixels", "[capture][impression]
   cv::circle(mask, cv::Point(60, 60), 20, cv::Scalar(0), cv::FILLED);
   CHECK_FALSE(gs360::FindImpression(press, reference, {}, mask));
   CHECK_THROWS_AS(gs360::FindImpression(press, cv::Mat(10, 10, CV_8UC3)), std::invalid_argument);
+}
+
+TEST_CASE("DifferenceMagnitude is the per-pixel colour distance, zero under the mask",
+          "[capture][impression]") {
+  cv::Mat reference = Noisy(3);
+  cv::Mat press = Noisy(4);
+  press.at<cv::Vec3b>(5, 7) = cv::Vec3b(0, 255, 30);
+  reference.at<cv::Vec3b>(5, 7) = cv::Vec3b(255, 0, 30);
+  cv::Mat mask(press.size(), CV_8U, cv::Scalar(1));
+  mask.at<std::uint8_t>(9, 11) = 0;
+  const cv::Mat m = gs360::DifferenceMagnitude(press, reference, mask, 0.0, "test");
+  REQUIRE(m.type() == CV_32F);
+  REQUIRE(m.size() == press.size());
+  for (int y = 0; y < press.rows; ++y) {
+    for (int x = 0; x < press.cols; ++x) {
+      const cv::Vec3b a = press.at<cv::Vec3b>(y, x), b = reference.at<cv::Vec3b>(y, x);
+      double sum = 0.0;
+      for (int c = 0; c < 3; ++c) sum += (a[c] - b[c]) * (a[c] - b[c]);
+      const double want = (y == 9 && x == 11) ? 0.0 : std::sqrt(sum);
+      if (std::abs(m.at<float>(y, x) - want) > 1e-4) FAIL("pixel " << x << ", " << y);
+    }
+  }
+  CHECK(m.at<float>(5, 7) == Approx(std::sqrt(2.0 * 255 * 255)));
+  CHECK_THROWS_WITH(
+      gs360::DifferenceMagnitude(press, reference(cv::Rect(0, 0, 10, 10)), {}, 0.0, "caller"),
+      Catch::Contains("caller"));
 }
