@@ -499,6 +499,17 @@ void Calibration::Intrinsics() {
       (*metrics)["images_used"] = r.used.size();
       (*metrics)["images_rejected"] = r.rejected.size();
       (*metrics)["radial_coverage"] = r.radial_coverage;
+      Json per_image = Json::array();
+      for (const IntrinsicsImageReport& image : r.images) {
+        per_image.push_back(
+            {{"file",
+              inputs_.checkerboard_images[static_cast<std::size_t>(image.index)].filename()},
+             {"used", image.used},
+             {"reason", image.reason},
+             {"corners", image.corners},
+             {"rms_px", image.rms_px}});
+      }
+      (*metrics)["images"] = std::move(per_image);
     }
     (*metrics)["intrinsics"] = out;
     const std::string text = out.dump();

@@ -56,6 +56,11 @@ void AddOptions(CLI::App* cmd, Json* r) {
   Key<std::string>(cmd, "--name", "model_name", "Model name (default: run-<id>)", r);
   Key<std::string>(cmd, "--model-version", "model_version",
                    "Model version (default: the training's hash)", r);
+  Key<int>(cmd, "--board-cols", "board_cols",
+           "Checkerboard inner corners along its x, for the lens intrinsics (default: 9)", r);
+  Key<int>(cmd, "--board-rows", "board_rows", "Checkerboard inner corners along its y (default: 6)",
+           r);
+  Key<double>(cmd, "--square-mm", "square_mm", "Checkerboard square side in mm (default: 5)", r);
   Key<int>(cmd, "--max-epochs", "max_epochs", "Training epochs at most (default: the trainer's)",
            r);
   Key<std::vector<int>>(cmd, "--hidden", "hidden",

@@ -1,6 +1,7 @@
 #include "daemon/calibration_jobs.h"
 
 #include <chrono>
+#include <cmath>
 #include <fstream>
 #include <sstream>
 
@@ -65,6 +66,15 @@ void ReadCalibrationRequest(JsonReader& r, CalibrationOptions& o) {
       for (const auto& s : stages) names += (names.empty() ? "" : ", ") + s;
       r.Fail(field, "unknown stage \"" + *value + "\" (stages: " + names + ")");
     }
+  }
+  // The checkerboard the lens was photographed with: inner corners and square side.
+  r.Get("board_cols", o.intrinsics.board_cols);
+  r.Get("board_rows", o.intrinsics.board_rows);
+  r.Get("square_mm", o.intrinsics.square_mm);
+  if (o.intrinsics.board_cols < 2) r.Fail("board_cols", "expected >= 2 inner corners");
+  if (o.intrinsics.board_rows < 2) r.Fail("board_rows", "expected >= 2 inner corners");
+  if (!(o.intrinsics.square_mm > 0.0 && std::isfinite(o.intrinsics.square_mm))) {
+    r.Fail("square_mm", "expected a finite square side > 0 (mm)");
   }
   r.Get("max_epochs", o.train.max_epochs);
   r.Get("hidden", o.train.hidden);

@@ -317,6 +317,11 @@ TEST_CASE("api: bad requests get 400 naming the field, and the daemon keeps serv
   r = PostJson(c, "/api/v1/runs/1/calibrate", {{"max_epochs", "ten"}});
   CHECK(r->status == 400);
   CHECK(Body(r)["error"]["field"] == "max_epochs");
+  for (const char* field : {"board_cols", "board_rows", "square_mm"}) {
+    r = PostJson(c, "/api/v1/runs/1/calibrate", {{field, 0}});
+    CHECK(r->status == 400);
+    CHECK(Body(r)["error"]["field"] == field);
+  }
   r = PostJson(c, "/api/v1/runs/1/calibrate", {{"from", "everything"}});
   CHECK(r->status == 400);
   CHECK(Body(r)["error"]["field"] == "from");
