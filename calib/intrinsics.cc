@@ -39,6 +39,27 @@ int IllConditionedIndex(const std::string& message) {
 
 }  // namespace
 
+std::optional<std::string> ImageFileProblem(std::span<const std::uint8_t> bytes) {
+  if (bytes.size() < 16) {
+    return "too short to be an image (" + std::to_string(bytes.size()) + " bytes)";
+  }
+  const auto tail_has = [&](std::span<const std::uint8_t> marker, std::size_t tail) {
+    const auto from = bytes.end() - static_cast<std::ptrdiff_t>(std::min(tail, bytes.size()));
+    return std::search(from, bytes.end(), marker.begin(), marker.end()) != bytes.end();
+  };
+  static constexpr std::uint8_t kPng[8] = {0x89, 'P', 'N', 'G', 0x0D, 0x0A, 0x1A, 0x0A};
+  static constexpr std::uint8_t kIend[4] = {'I', 'E', 'N', 'D'};
+  static constexpr std::uint8_t kJpegEoi[2] = {0xFF, 0xD9};
+  if (std::equal(std::begin(kPng), std::end(kPng), bytes.begin())) {
+    // The last chunk: length 0, "IEND", its CRC.
+    if (!tail_has(kIend, 12)) return std::string("truncated PNG (no IEND chunk at its end)");
+  } else if (bytes[0] == 0xFF && bytes[1] == 0xD8) {
+    // The end-of-image marker, allowing a few bytes of padding after it.
+    if (!tail_has(kJpegEoi, 16)) return std::string("truncated JPEG (no end-of-image marker)");
+  }
+  return std::nullopt;
+}
+
 void IntrinsicsOptions::Check() const {
   if (board_cols < 2) ThrowField("board_cols", board_cols, "must be >= 2");
   if (board_rows < 2) ThrowField("board_rows", board_rows, "must be >= 2");
@@ -83,6 +104,10 @@ std::vector<int> DetectBoards(std::span<const cv::Mat> images, const FisheyeIntr
     IntrinsicsImageReport& report = result->images[i];
     report.index = static_cast<int>(i);
     const cv::Mat& image = images[i];
+    if (image.empty()) {
+      report.reason = "not a decodable image";
+      continue;
+    }
     if (image.size() != image_size || (image.type() != CV_8UC1 && image.type() != CV_8UC3)) {
       throw std::invalid_argument("CalibrateIntrinsics: image " + std::to_string(i) + " is " +
                                   std::to_string(image.cols) + "x" + std::to_string(image.rows) +

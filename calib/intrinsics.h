@@ -17,8 +17,11 @@
 // (radial coverage below min_radial_coverage: the distortion would be extrapolated); OpenCV's
 // CHECK_COND failure that cannot be resolved by dropping images; an RMS reprojection error above
 // max_rms_px. std::invalid_argument for invalid options, nominal intrinsics, or an image that is
-// not CV_8UC1 / CV_8UC3 of the nominal size. Never a garbage result.
+// not CV_8UC1 / CV_8UC3 of the nominal size. An empty image (a file that did not decode) is
+// rejected with its reason, not an error. Never a garbage result.
 
+#include <cstdint>
+#include <optional>
 #include <span>
 #include <string>
 #include <vector>
@@ -76,6 +79,11 @@ struct IntrinsicsResult {
   std::vector<Rigid3d> cam_from_board;        // per used image (same order as `used`)
   double radial_coverage = 0.0;               // see IntrinsicsOptions::min_radial_coverage
 };
+
+// Why the bytes of a checkerboard image file cannot be trusted, before decoding: too short, or a
+// PNG without its closing IEND chunk or a JPEG without its end-of-image marker (a truncated copy:
+// OpenCV rejects the one and fills the other's missing rows with grey). nullopt if neither.
+std::optional<std::string> ImageFileProblem(std::span<const std::uint8_t> bytes);
 
 // `images`: grey (CV_8UC1) or BGR (CV_8UC3) checkerboard images of nominal.width x nominal.height.
 // `nominal`: the lens's nominal model (initial guess; its max_theta is kept in the result).

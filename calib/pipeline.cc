@@ -8,6 +8,7 @@
 #include <map>
 #include <mutex>
 #include <numeric>
+#include <optional>
 #include <stdexcept>
 #include <thread>
 
@@ -468,6 +469,9 @@ void Calibration::LoadProbes() {
 void Calibration::Intrinsics() {
   Hasher boards;
   std::vector<cv::Mat> images;
+  // A truncated or undecodable file is one rejected image (an empty Mat), PNG and JPEG alike.
+  std::vector<std::string> unreadable;
+  std::string unreadable_list;
   for (const auto& path : inputs_.checkerboard_images) {
     std::ifstream in(path, std::ios::binary);
     if (!in)
@@ -475,10 +479,13 @@ void Calibration::Intrinsics() {
     std::vector<std::uint8_t> bytes((std::istreambuf_iterator<char>(in)),
                                     std::istreambuf_iterator<char>());
     boards.Add(bytes.data(), bytes.size());
-    cv::Mat img = cv::imdecode(bytes, cv::IMREAD_GRAYSCALE);
-    if (img.empty())
-      throw std::runtime_error("intrinsics: " + path.string() + " is not a readable image");
-    images.push_back(img);
+    std::optional<std::string> problem = ImageFileProblem(bytes);
+    cv::Mat img;
+    if (!problem) img = cv::imdecode(bytes, cv::IMREAD_GRAYSCALE);
+    if (!problem && img.empty()) problem = "not a decodable image";
+    if (problem) unreadable_list += "; " + path.filename().string() + ": " + *problem;
+    unreadable.push_back(problem.value_or(""));
+    images.push_back(problem ? cv::Mat() : img);
   }
   keys_["checkerboards"] = boards.Hex();
   const auto blob = runner_.Run("intrinsics", Key("intrinsics"), [&](Json* metrics) {
@@ -491,7 +498,11 @@ void Calibration::Intrinsics() {
       try {
         r = CalibrateIntrinsics(images, inputs_.nominal_intrinsics, options_.intrinsics);
       } catch (const std::exception& e) {
-        throw std::runtime_error(std::string("intrinsics: ") + e.what());
+        throw std::runtime_error(std::string("intrinsics: ") + e.what() + unreadable_list);
+      }
+      for (IntrinsicsImageReport& image : r.images) {
+        const std::string& why = unreadable[static_cast<std::size_t>(image.index)];
+        if (!why.empty()) image.reason = why;
       }
       out = IntrinsicsToJson(r.intrinsics);
       (*metrics)["source"] = "checkerboards";

@@ -164,6 +164,41 @@ std::string TimingLine(const Json& v) {
   return s;
 }
 
+}  // namespace
+
+std::string FormatIntrinsics(const Json& metrics) {
+  const Json* lens = Find(metrics, "intrinsics");
+  if (lens == nullptr || !lens->is_object()) return {};
+  const Json* source = Find(metrics, "source");
+  std::string s =
+      "intrinsics: fx " + Num(Find(*lens, "fx"), 2) + ", fy " + Num(Find(*lens, "fy"), 2) +
+      ", cx " + Num(Find(*lens, "cx"), 2) + ", cy " + Num(Find(*lens, "cy"), 2) + " px (" +
+      (source != nullptr && source->is_string() ? source->get<std::string>() : "?") + ")\n";
+  if (Find(metrics, "rms_px") == nullptr) return s;
+  s += "  RMS " + Num(Find(metrics, "rms_px"), 3) + " px over " +
+       Num(Find(metrics, "images_used"), 0) + " images (" +
+       Num(Find(metrics, "images_rejected"), 0) + " rejected), radial coverage " +
+       Num(Find(metrics, "radial_coverage"), 2) + "\n";
+  const Json* images = Find(metrics, "images");
+  if (images == nullptr || !images->is_array()) return s;
+  for (const Json& image : *images) {
+    const Json* file = Find(image, "file");
+    const Json* used = Find(image, "used");
+    const Json* reason = Find(image, "reason");
+    s += "  " + PadRight(file != nullptr && file->is_string() ? file->get<std::string>() : "?", 20);
+    if (used != nullptr && used->is_boolean() && used->get<bool>()) {
+      s += PadLeft(Num(Find(image, "corners"), 0), 4) + " corners, RMS " +
+           Num(Find(image, "rms_px"), 3) + " px\n";
+    } else {
+      s += "rejected: " +
+           (reason != nullptr && reason->is_string() ? reason->get<std::string>() : "?") + "\n";
+    }
+  }
+  return s;
+}
+
+namespace {
+
 std::string PoseLine(const Json& v) {
   const Json* pose = Find(v, "pose");
   if (pose == nullptr || !pose->is_object()) return {};

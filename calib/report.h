@@ -34,6 +34,12 @@ struct ReportInputs {
 // ones); "-" for a null / missing value. Truths in the "truths" order. Never throws.
 std::string FormatValidationTable(const nlohmann::json& validation);
 
+// The intrinsics stage's metrics as text: the lens (fx, fy, cx, cy in px), where it came from,
+// the RMS reprojection error over the images used, and one line per checkerboard image (its
+// corners and RMS, or why it was rejected). Empty when `metrics` has no intrinsics. Never
+// throws.
+std::string FormatIntrinsics(const nlohmann::json& metrics);
+
 // The accuracy targets against the validation's best truth (physical when present, else rigid)
 // and default integrator: mean depth error <= 0.030 mm, the > 50 deg band <= 0.050 mm, peak
 // indentation error <= 0.050 mm, median normal error <= 3 deg, and with a physical truth the

@@ -24,6 +24,10 @@ CalibrationResult CalibrateAndPrint(RunDatabase& db, std::int64_t run_id,
     std::fprintf(out, "  %-12s %s %8.2f s  %s\n", s.stage.c_str(), s.cached ? "cached" : "ran   ",
                  s.seconds, s.input_hash.c_str());
   }
+  for (const StageReport& s : result.stages) {
+    const std::string lens = FormatIntrinsics(s.metrics);
+    if (s.stage == "intrinsics" && !lens.empty()) std::fprintf(out, "\n%s", lens.c_str());
+  }
   if (result.model_path.empty()) {
     std::fprintf(out, "\ncalibration stopped after %s in %s (no model exported)\n",
                  result.stages.empty() ? "no stage" : result.stages.back().stage.c_str(),

@@ -141,6 +141,10 @@ Json WatchCalibration(DaemonClient& client, std::int64_t run_id, std::FILE* out)
     std::fprintf(out, "  %-12s %-8s %8.2f s\n", Text(s, "name").c_str(), Text(s, "state").c_str(),
                  Number(s, "seconds", 0.0));
   }
+  for (const auto& s : view.value("stages", Json::array())) {
+    const std::string lens = s.contains("metrics") ? FormatIntrinsics(s["metrics"]) : "";
+    if (Text(s, "name") == "intrinsics" && !lens.empty()) std::fprintf(out, "\n%s", lens.c_str());
+  }
   const bool validated =
       view.contains("validation") && view["validation"].is_object() && !view["validation"].empty();
   if (Text(view, "state") == "done" && !validated) {

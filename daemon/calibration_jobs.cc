@@ -41,7 +41,8 @@ struct CalibrationJobs::Job {
     std::string name;
     std::string state = "pending";  // pending, running, done, cached, failed, skipped
     double seconds = 0.0;
-    std::string message;  // the stage's latest log line
+    std::string message;     // the stage's latest log line
+    nlohmann::json metrics;  // what the stage measured (null until the job ends)
   };
   std::int64_t run_id = 0;
   std::string state = "running";  // running, done, failed, stopped, interrupted
@@ -217,6 +218,7 @@ void CalibrationJobs::Execute(std::shared_ptr<Job> job, CalibrationInputs inputs
         if (s.name == r.stage) {
           s.state = r.cached ? "cached" : "done";
           s.seconds = r.seconds;
+          s.metrics = r.metrics;
         }
       }
     }
@@ -255,8 +257,11 @@ nlohmann::json CalibrationJobs::ViewOf(const Job& job) const {
     if (s.state == "running") {
       seconds = std::chrono::duration<double>(Clock::now() - job.stage_start).count();
     }
-    stages.push_back(
-        {{"name", s.name}, {"state", s.state}, {"seconds", seconds}, {"message", s.message}});
+    stages.push_back({{"name", s.name},
+                      {"state", s.state},
+                      {"seconds", seconds},
+                      {"message", s.message},
+                      {"metrics", s.metrics}});
   }
   nlohmann::json files = nlohmann::json::object();
   for (const auto& [kind, path] : job.files) files[kind] = path;

@@ -1,8 +1,10 @@
 #include "calib/intrinsics.h"
 
+#include <algorithm>
 #include <catch2/catch.hpp>
 #include <cmath>
 #include <numbers>
+#include <opencv2/imgcodecs.hpp>
 #include <stdexcept>
 #include <vector>
 
@@ -125,4 +127,43 @@ TEST_CASE("CalibrateIntrinsics checks its inputs", "[intrinsics]") {
 }
 
 }  // namespace
+}  // namespace gs360
+
+namespace gs360 {
+namespace {
+
+std::vector<std::uint8_t> Encoded(const cv::Mat& image, const std::string& ext) {
+  std::vector<std::uint8_t> bytes;
+  REQUIRE(cv::imencode(ext, image, bytes));
+  return bytes;
+}
+
+}  // namespace
+
+TEST_CASE("ImageFileProblem: truncated PNG and JPEG files are caught alike", "[intrinsics]") {
+  const cv::Mat board = RenderBoards(PerturbedLens(), 1, 5)[0];
+  for (const std::string ext : {".png", ".jpg"}) {
+    INFO(ext);
+    std::vector<std::uint8_t> bytes = Encoded(board, ext);
+    CHECK_FALSE(ImageFileProblem(bytes));
+    bytes.resize(bytes.size() * 2 / 3);
+    const auto problem = ImageFileProblem(bytes);
+    REQUIRE(problem);
+    CHECK_THAT(*problem,
+               Catch::Contains("truncated") && Catch::Contains(ext == ".png" ? "PNG" : "JPEG"));
+  }
+  CHECK_THAT(*ImageFileProblem(std::vector<std::uint8_t>(5, 0)), Catch::Contains("too short"));
+}
+
+TEST_CASE("CalibrateIntrinsics rejects an undecodable image and goes on", "[intrinsics]") {
+  std::vector<cv::Mat> images = RenderBoards(PerturbedLens(), 14, 7);
+  images[3] = cv::Mat();
+  const IntrinsicsResult result =
+      CalibrateIntrinsics(images, FisheyeIntrinsics::Default160(), IntrinsicsOptions{});
+  CHECK_FALSE(result.images[3].used);
+  CHECK(result.images[3].reason == "not a decodable image");
+  CHECK(std::count(result.rejected.begin(), result.rejected.end(), 3) == 1);
+  CHECK(result.rms_px < 0.3);
+}
+
 }  // namespace gs360

@@ -170,6 +170,32 @@ TEST_CASE("FormatValidationTable shows the numbers, '-' for nulls, the pose", "[
   CHECK(FormatValidationTable(no_pose).find("pose:") == std::string::npos);
 }
 
+TEST_CASE("FormatIntrinsics: the lens, the RMS, each image or why it was rejected", "[report]") {
+  const Json metrics = {
+      {"source", "checkerboards"},
+      {"intrinsics", {{"fx", 167.333}, {"fy", 166.826}, {"cx", 320.334}, {"cy", 242.354}}},
+      {"rms_px", 0.0619},
+      {"images_used", 1},
+      {"images_rejected", 1},
+      {"radial_coverage", 0.904},
+      {"images",
+       {{{"file", "board_00.png"}, {"used", true}, {"corners", 54}, {"rms_px", 0.0606}},
+        {{"file", "board_01.png"}, {"used", false}, {"reason", "no board found"}}}}};
+  const std::string text = FormatIntrinsics(metrics);
+  CHECK_THAT(text,
+             Catch::Contains("fx 167.33, fy 166.83, cx 320.33, cy 242.35 px (checkerboards)"));
+  CHECK_THAT(text, Catch::Contains("RMS 0.062 px over 1 images (1 rejected)"));
+  CHECK_THAT(text, Catch::Contains("board_00.png") && Catch::Contains("54 corners, RMS 0.061 px"));
+  CHECK_THAT(text, Catch::Contains("board_01.png") && Catch::Contains("rejected: no board found"));
+  // The nominal lens: no RMS, no images; nothing at all without intrinsics.
+  const std::string nominal = FormatIntrinsics(
+      {{"source", "nominal (no checkerboard images given)"}, {"intrinsics", {{"fx", 160.0}}}});
+  CHECK_THAT(nominal, Catch::Contains("fx 160.00, fy -") && Catch::Contains("nominal"));
+  CHECK(nominal.find("RMS") == std::string::npos);
+  CHECK(FormatIntrinsics(Json::object()).empty());
+  CHECK(FormatIntrinsics(Json("garbage")).empty());
+}
+
 TEST_CASE("RenderReportHtml: title, tables, curve, error map, decodable images", "[report]") {
   ReportInputs in;
   in.title = "run <3> & \"cylinder\"";

@@ -177,6 +177,7 @@ TEST_CASE(
   INFO(r.out << r.err);
   REQUIRE(r.exit_code == 0);
   CHECK_THAT(r.out, Catch::Contains("no model exported") && Catch::Contains("skipped"));
+  CHECK_THAT(r.out, Catch::Contains("intrinsics: fx ") && Catch::Contains("nominal"));
   r = Gs360(dir, daemon->url(), {"calibrate", "1", "--max-epochs", "4"});
   INFO(r.out << r.err);
   REQUIRE(r.exit_code == 0);
