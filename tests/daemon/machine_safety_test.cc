@@ -21,7 +21,9 @@
 using namespace gs360;
 using namespace std::chrono_literals;
 using Catch::Contains;
+using gs360::test::AtProbe;
 using gs360::test::RigFixture;
+using gs360::test::StopAfter;
 
 namespace {
 
@@ -33,14 +35,6 @@ std::string Events(const RigFixture& f, std::int64_t run_id) {
   std::string all;
   for (const EventRecord& e : db.ListEvents(run_id, 0, 100000)) all += e.message + "\n";
   return all;
-}
-
-// Calls `action` once, from the progress callback, when `after` probes are committed.
-void AtProbe(RunEngine& engine, std::int64_t after, std::function<void()> action) {
-  auto done = std::make_shared<std::atomic<bool>>(false);
-  engine.SetProgressCallback([=](const RunProgress& p) {
-    if (p.counts.captured >= after && !done->exchange(true)) action();
-  });
 }
 
 // Talks to the virtual controller as a user at a terminal would (jogging by hand): trusts its
@@ -73,8 +67,7 @@ void TweakNoHoming(VirtualRigOptions& o) {
 // Returns probe k.
 PlannedProbe KilledMidPress(RigFixture& f, RunEngine& engine, const ProbePlan& plan,
                             std::int64_t run_id) {
-  AtProbe(engine, 3, [&] { engine.RequestStop(); });
-  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
+  StopAfter(engine, run_id, 3);
   const auto next = RunDatabase(f.db).NextPendingProbe(run_id, 3);
   REQUIRE(next);
   const PlannedProbe& p = plan.probes.at(static_cast<std::size_t>(next->plan_index));
@@ -215,8 +208,7 @@ TEST_CASE("a session killed while it homes: the next trusts the finished cycle, 
   RigFixture f("homekill", 30, 0.0);
   RunEngine engine(f.db);
   const auto run_id = engine.CreateRun(f.config);
-  AtProbe(engine, 3, [&] { engine.RequestStop(); });
-  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
+  StopAfter(engine, run_id, 3);
   engine.SetProgressCallback({});
   // What the killed session's $H did: the machine homed, away from every point of the path.
   ByHand(f, {"$H"});
@@ -357,8 +349,7 @@ TEST_CASE("resume asks when the re-pressed probes cannot be compared", "[daemon]
   f.config.engine.require_impression = false;  // else the blank re-presses fail outright
   RunEngine engine(f.db);
   const auto run_id = engine.CreateRun(f.config);
-  AtProbe(engine, 8, [&] { engine.RequestStop(); });
-  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
+  StopAfter(engine, run_id, 8);
   const auto before = RunDatabase(f.db).CountProbes(run_id).captured;
 
   // The sensor taken off the bed: a second rig, its sensor 60 mm away, where no press touches.
@@ -374,8 +365,7 @@ TEST_CASE("resume re-presses only probes whose stored impression is clear", "[da
   RigFixture f("faint", 40, 0.0);
   RunEngine engine(f.db);
   const auto run_id = engine.CreateRun(f.config);
-  AtProbe(engine, 12, [&] { engine.RequestStop(); });
-  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
+  StopAfter(engine, run_id, 12);
 
   // Every stored press frame but three becomes its reference brightened by 8 DN: a faint change
   // over the whole frame, like a probe at a fin's edge under LED drift. Its "impression" centre
@@ -422,8 +412,7 @@ TEST_CASE("a board that resets when its port opens: each session homes again, no
                [](VirtualRigOptions& o) { o.cnc.reset_on_open = true; });
   RunEngine engine(f.db);
   const auto run_id = engine.CreateRun(f.config);
-  AtProbe(engine, 4, [&] { engine.RequestStop(); });
-  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
+  StopAfter(engine, run_id, 4);
   const auto boots = f.rig->cnc().Stats().boots;
   const auto before = RunDatabase(f.db).CountProbes(run_id).captured;
   // The resume's open restarts the board (MPos 0,0,0, homing lock): the tool was parked clear of

@@ -3,6 +3,8 @@
 
 #include <unistd.h>
 
+#include <catch2/catch.hpp>
+
 #include <atomic>
 #include <cstdlib>
 #include <filesystem>
@@ -60,5 +62,19 @@ struct RigFixture {
     std::filesystem::remove_all(dir, ec);
   }
 };
+
+// Calls `action` once, from the progress callback, when `after` probes are committed.
+inline void AtProbe(RunEngine& engine, std::int64_t after, std::function<void()> action) {
+  auto done = std::make_shared<std::atomic<bool>>(false);
+  engine.SetProgressCallback([=](const RunProgress& p) {
+    if (p.counts.captured >= after && !done->exchange(true)) action();
+  });
+}
+
+// Runs `run_id` until at least `after` probes are committed, then stops it (left interrupted).
+inline void StopAfter(RunEngine& engine, std::int64_t run_id, std::int64_t after) {
+  AtProbe(engine, after, [&engine] { engine.RequestStop(); });
+  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
+}
 
 }  // namespace gs360::test

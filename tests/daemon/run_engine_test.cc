@@ -11,7 +11,9 @@
 #include "tests/wait.h"
 
 using namespace gs360;
+using gs360::test::AtProbe;
 using gs360::test::RigFixture;
+using gs360::test::StopAfter;
 
 namespace {
 
@@ -34,14 +36,6 @@ void CheckCommitted(RigFixture& f, std::int64_t run_id) {
   CHECK(truth.off_target == 0);
   CHECK(truth.unverified == 0);
   CHECK(truth.max_reported_error_mm < 0.002);
-}
-
-// Calls `action` once, from the progress callback, when `after` probes are committed.
-void AtProbe(RunEngine& engine, std::int64_t after, std::function<void()> action) {
-  auto done = std::make_shared<std::atomic<bool>>(false);
-  engine.SetProgressCallback([=](const RunProgress& p) {
-    if (p.counts.captured >= after && !done->exchange(true)) action();
-  });
 }
 
 }  // namespace
@@ -98,8 +92,7 @@ TEST_CASE("resume refuses to continue when the sensor moved", "[daemon][run]") {
   RigFixture f("moved", 40, 0.0);
   RunEngine engine(f.db);
   const auto run_id = engine.CreateRun(f.config);
-  AtProbe(engine, 8, [&] { engine.RequestStop(); });
-  REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
+  StopAfter(engine, run_id, 8);
   const auto before = RunDatabase(f.db).CountProbes(run_id).captured;
 
   // Knock the sensor 0.6 mm sideways on the machine bed: a second virtual rig, identical but for
