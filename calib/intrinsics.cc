@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <optional>
 #include <sstream>
 #include <stdexcept>
 #include <string>
@@ -250,26 +251,14 @@ void AddReprojectionErrors(const FisheyeFit& fit, const std::vector<cv::Point3d>
 
 }  // namespace
 
-IntrinsicsResult CalibrateIntrinsics(std::span<const cv::Mat> images,
-                                     const FisheyeIntrinsics& nominal,
-                                     const IntrinsicsOptions& options) {
-  options.Check();
-  nominal.Check();
-  const std::vector<cv::Point3d> board = BoardCorners(options);
-  IntrinsicsResult result;
-  std::vector<Corners> detected(images.size());
-  const std::vector<int> candidates =
-      DetectBoards(images, nominal, options, board.size(), &result, &detected);
-  if (static_cast<int>(candidates.size()) < options.min_images) {
-    throw std::runtime_error("CalibrateIntrinsics: a " + std::to_string(options.board_cols) + "x" +
-                             std::to_string(options.board_rows) + " checkerboard was detected in " +
-                             std::to_string(candidates.size()) + " of " +
-                             std::to_string(images.size()) + " images, need at least " +
-                             std::to_string(options.min_images));
-  }
+namespace {
+
+// Coverage, fit and checks from `nominal` on the detected boards; `result` holds the detection.
+IntrinsicsResult Solve(const std::vector<int>& candidates, const std::vector<Corners>& detected,
+                       const std::vector<cv::Point3d>& board, const FisheyeIntrinsics& nominal,
+                       const IntrinsicsOptions& options, IntrinsicsResult result) {
   CheckCoverage(nominal, candidates, detected, options, &result);
   const FisheyeFit fit = FitFisheye(candidates, detected, board, nominal, options, &result);
-
   FisheyeIntrinsics intrinsics;
   try {
     intrinsics = FromCv(fit.K, fit.D, nominal.width, nominal.height, nominal.max_theta);
@@ -278,7 +267,7 @@ IntrinsicsResult CalibrateIntrinsics(std::span<const cv::Mat> images,
   }
   AddReprojectionErrors(fit, board, detected, intrinsics.skew, &result);
   result.used = fit.used;
-  for (std::size_t i = 0; i < images.size(); ++i) {
+  for (std::size_t i = 0; i < result.images.size(); ++i) {
     if (!result.images[i].used) result.rejected.push_back(static_cast<int>(i));
   }
   if (!(result.rms_px <= options.max_rms_px)) {
@@ -288,6 +277,57 @@ IntrinsicsResult CalibrateIntrinsics(std::span<const cv::Mat> images,
   }
   result.intrinsics = intrinsics;
   return result;
+}
+
+}  // namespace
+
+IntrinsicsResult CalibrateIntrinsics(std::span<const cv::Mat> images,
+                                     const FisheyeIntrinsics& nominal,
+                                     const IntrinsicsOptions& options) {
+  options.Check();
+  nominal.Check();
+  const std::vector<cv::Point3d> board = BoardCorners(options);
+  IntrinsicsResult detection;
+  std::vector<Corners> detected(images.size());
+  const std::vector<int> candidates =
+      DetectBoards(images, nominal, options, board.size(), &detection, &detected);
+  if (static_cast<int>(candidates.size()) < options.min_images) {
+    throw std::runtime_error("CalibrateIntrinsics: a " + std::to_string(options.board_cols) + "x" +
+                             std::to_string(options.board_rows) + " checkerboard was detected in " +
+                             std::to_string(candidates.size()) + " of " +
+                             std::to_string(images.size()) + " images, need at least " +
+                             std::to_string(options.min_images));
+  }
+  try {
+    return Solve(candidates, detected, board, nominal, options, detection);
+  } catch (const std::runtime_error& e) {
+    // A nominal focal length far from the lens's misleads the coverage check and OpenCV's
+    // initialisation, and their messages then blame the images. If the boards fit from another
+    // focal length, that is the problem to report (not a result to use: the nominal lens also
+    // seeds the plan and the pose).
+    for (const double scale : {0.25, 0.35, 0.5, 0.7, 1.4, 2.0, 2.8, 4.0}) {
+      FisheyeIntrinsics guess = nominal;
+      guess.fx *= scale;
+      guess.fy *= scale;
+      std::optional<IntrinsicsResult> r;
+      try {
+        r = Solve(candidates, detected, board, guess, options, detection);
+      } catch (const std::exception&) {
+        continue;
+      }
+      // A fit near the nominal says the nominal was not the problem (boards only at the centre
+      // fit from a shorter guess too, and their coverage message is the true one).
+      if (std::abs(r->intrinsics.fx / nominal.fx - 1.0) < 0.25) continue;
+      throw std::runtime_error(
+          std::string(e.what()) + ". But the nominal lens looks far from the real one: from " +
+          Fixed(scale, 2) + " times its focal length the boards fit with an RMS of " +
+          Fixed(r->rms_px) + " px at fx " + Fixed(r->intrinsics.fx, 1) + ", fy " +
+          Fixed(r->intrinsics.fy, 1) + " px, where the nominal says fx " + Fixed(nominal.fx, 1) +
+          ", fy " + Fixed(nominal.fy, 1) +
+          ". Set the rig's nominal camera (fx, fy) near those and calibrate again");
+    }
+    throw;
+  }
 }
 
 double MaxRayAngleDifference(const FisheyeIntrinsics& a, const FisheyeIntrinsics& b, int step_px) {

@@ -167,3 +167,30 @@ TEST_CASE("CalibrateIntrinsics rejects an undecodable image and goes on", "[intr
 }
 
 }  // namespace gs360
+
+namespace gs360 {
+
+TEST_CASE("CalibrateIntrinsics says when the nominal lens is far off, not what the images lack",
+          "[intrinsics]") {
+  const FisheyeIntrinsics truth = PerturbedLens();
+  const std::vector<cv::Mat> images = RenderBoards(truth, 12, 7);
+  for (const double factor : {0.5, 2.0, 3.0}) {
+    INFO("nominal focal length x" << factor);
+    FisheyeIntrinsics nominal = FisheyeIntrinsics::Default160();
+    nominal.fx *= factor;
+    nominal.fy *= factor;
+    try {
+      CalibrateIntrinsics(images, nominal, IntrinsicsOptions{});
+      FAIL("expected an error");
+    } catch (const std::runtime_error& e) {
+      const std::string what = e.what();
+      CHECK_THAT(what, Catch::Contains("nominal lens looks far from the real one"));
+      // The focal length it names is the true one.
+      const auto at = what.find("px at fx ");
+      REQUIRE(at != std::string::npos);
+      CHECK(std::abs(std::stod(what.substr(at + 9)) - truth.fx) < 2.0);
+    }
+  }
+}
+
+}  // namespace gs360
