@@ -471,7 +471,6 @@ void Calibration::Intrinsics() {
   std::vector<cv::Mat> images;
   // A truncated or undecodable file is one rejected image (an empty Mat), PNG and JPEG alike.
   std::vector<std::string> unreadable;
-  std::string unreadable_list;
   for (const auto& path : inputs_.checkerboard_images) {
     std::ifstream in(path, std::ios::binary);
     if (!in)
@@ -483,7 +482,6 @@ void Calibration::Intrinsics() {
     cv::Mat img;
     if (!problem) img = cv::imdecode(bytes, cv::IMREAD_GRAYSCALE);
     if (!problem && img.empty()) problem = "not a decodable image";
-    if (problem) unreadable_list += "; " + path.filename().string() + ": " + *problem;
     unreadable.push_back(problem.value_or(""));
     images.push_back(problem ? cv::Mat() : img);
   }
@@ -498,7 +496,13 @@ void Calibration::Intrinsics() {
       try {
         r = CalibrateIntrinsics(images, inputs_.nominal_intrinsics, options_.intrinsics);
       } catch (const std::exception& e) {
-        throw std::runtime_error(std::string("intrinsics: ") + e.what() + unreadable_list);
+        std::string message = std::string("intrinsics: ") + e.what();
+        for (std::size_t i = 0; i < unreadable.size(); ++i) {
+          if (unreadable[i].empty()) continue;
+          message +=
+              "; " + inputs_.checkerboard_images[i].filename().string() + ": " + unreadable[i];
+        }
+        throw std::runtime_error(message);
       }
       for (IntrinsicsImageReport& image : r.images) {
         const std::string& why = unreadable[static_cast<std::size_t>(image.index)];
