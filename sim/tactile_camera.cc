@@ -146,6 +146,33 @@ struct TactileCamera::Background {
   double exposure = 1.0;                             // DN per unit of Lighting::Shade radiance
 };
 
+// The last ball position's re-rendered pixels before drift and noise, and its truth.
+struct TactileCamera::PatchCache {
+  Eigen::Vector3d ball = Eigen::Vector3d::Zero();  // sensor frame, compared exactly
+  bool rigid = false;
+  FrameTruth truth;           // its patch fields (ROI, maps, depths, contact point) are reused
+  std::vector<int> pixels;    // image pixel index of each re-shaded pixel
+  std::vector<float> signal;  // their R, G, B (DN before drift), 3 per pixel
+  int roi_pixels = 0;
+
+  bool Matches(const Eigen::Vector3d& b, bool r) const { return r == rigid && b == ball; }
+  // The patch's truth fields into `to` (the frame's own fields stay).
+  void CopyTruth(FrameTruth* to) const {
+    to->max_depth_mm = truth.max_depth_mm;
+    to->max_indentation_mm = truth.max_indentation_mm;
+    to->contact_point_sensor = truth.contact_point_sensor;
+    to->contact_normal_sensor = truth.contact_normal_sensor;
+    to->patch_triangles = truth.patch_triangles;
+    to->roi = truth.roi;  // the maps are shared, never written after the render that made them
+    to->contact_mask = truth.contact_mask;
+    to->deformed_mask = truth.deformed_mask;
+    to->rho = truth.rho;
+    to->indentation = truth.indentation;
+    to->points = truth.points;
+    to->normals = truth.normals;
+  }
+};
+
 void SensorModelOptions::Check() const {
   if (!std::isfinite(vignetting_v2))
     ThrowField("SensorModelOptions.vignetting_v2", vignetting_v2, "must be finite");
@@ -405,8 +432,10 @@ class TactileCamera::PatchRender {
  public:
   // `gain`, `z` and `dst` as RenderInto's whole-image pass has them; contact_p: the penetration
   // from which a pixel counts as contact.
+  // Each re-shaded pixel's drift-free signal is appended to `record`.
   PatchRender(const TactileCamera& camera, const DisplacedPatch& patch, double contact_p,
-              const float gain[3], const std::int16_t* z, std::uint8_t* dst, FrameTruth* truth)
+              const float gain[3], const std::int16_t* z, std::uint8_t* dst, FrameTruth* truth,
+              PatchCache* record)
       : camera_(camera),
         bg_(*camera.background_),
         sensor_(camera.options_.sensor),
@@ -417,7 +446,8 @@ class TactileCamera::PatchRender {
         shot_(static_cast<float>(sensor_.shot_gain)),
         z_(z),
         dst_(dst),
-        truth_(truth) {}
+        truth_(truth),
+        record_(record) {}
 
   // Sets truth->roi and the ROI's maps, re-renders its pixels; returns their count.
   int Render() {
@@ -569,6 +599,8 @@ class TactileCamera::PatchRender {
     }
     const std::size_t j = 3 * static_cast<std::size_t>(i);
     WritePixel(signal, gain_, z_ ? z_ + j : nullptr, read2_, shot_, dst_ + j);
+    record_->pixels.push_back(i);
+    record_->signal.insert(record_->signal.end(), signal, signal + 3);
     truth.rho.at<double>(ry, rx) = best_t_[r];
     truth.indentation.at<double>(ry, rx) = delta;
     truth.points.at<cv::Vec3d>(ry, rx) = cv::Vec3d(point.x(), point.y(), point.z());
@@ -588,6 +620,7 @@ class TactileCamera::PatchRender {
   const std::int16_t* const z_;
   std::uint8_t* const dst_;
   FrameTruth* const truth_;
+  PatchCache* const record_;
   std::vector<Eigen::Vector2d> uv_;                   // per patch vertex
   int x0_ = 0, y0_ = 0, x1_ = -1, y1_ = -1, rw_ = 0;  // ROI (inclusive) and its width
   // Per ROI pixel: the closest hit's t (< 0: never hit), triangle and barycentrics, and the
@@ -627,27 +660,56 @@ void TactileCamera::RenderInto(const std::optional<Eigen::Vector3d>& ball,
     truth.has_ball = true;
     truth.ball_center_sensor = *ball;
     truth.ball_center_machine = rig_->machine_from_sensor() * *ball;
-    const GelPatchBuilder& builder = rigid ? *rigid_patch_builder_ : *patch_builder_;
-    Clock::time_point phase = Clock::now();
-    const DisplacedPatch patch = builder.Build(*ball, rig_->ball_radius());
-    if (!patch.Empty()) {
-      stats_.last_patch_seconds = SecondsSince(phase);
-      phase = Clock::now();
-      truth.max_depth_mm = patch.max_depth;
-      truth.max_indentation_mm = patch.max_displacement;
-      truth.patch_triangles = patch.mesh.NumTriangles();
-      truth.contact_point_sensor = patch.contact_point;
-      truth.contact_normal_sensor = patch.contact_normal;
-      const double contact_p = std::max(builder.options().elastic_length, 1e-9);
-      roi_pixels = PatchRender(*this, patch, contact_p, gain, z, dst, &truth).Render();
-      stats_.last_roi_seconds = SecondsSince(phase);
+    if (patch_cache_ && patch_cache_->Matches(*ball, rigid)) {
+      ReusePatch(gain, z, dst);
+    } else {
+      RenderPatch(*ball, rigid, gain, z, dst);
     }
+    patch_cache_->CopyTruth(&truth);
+    roi_pixels = patch_cache_->roi_pixels;
   }
   *last_truth_ = std::move(truth);
   ++stats_.frames;
   stats_.last_roi_pixels = roi_pixels;
   stats_.last_patch_triangles = last_truth_->patch_triangles;
   stats_.last_frame_seconds = SecondsSince(start);
+}
+
+void TactileCamera::RenderPatch(const Eigen::Vector3d& ball, bool rigid, const float gain[3],
+                                const std::int16_t* z, std::uint8_t* dst) {
+  auto cache = std::make_unique<PatchCache>();
+  cache->ball = ball;
+  cache->rigid = rigid;
+  const GelPatchBuilder& builder = rigid ? *rigid_patch_builder_ : *patch_builder_;
+  Clock::time_point phase = Clock::now();
+  const DisplacedPatch patch = builder.Build(ball, rig_->ball_radius());
+  if (!patch.Empty()) {
+    stats_.last_patch_seconds = SecondsSince(phase);
+    phase = Clock::now();
+    FrameTruth& truth = cache->truth;
+    truth.max_depth_mm = patch.max_depth;
+    truth.max_indentation_mm = patch.max_displacement;
+    truth.patch_triangles = patch.mesh.NumTriangles();
+    truth.contact_point_sensor = patch.contact_point;
+    truth.contact_normal_sensor = patch.contact_normal;
+    const double contact_p = std::max(builder.options().elastic_length, 1e-9);
+    cache->roi_pixels =
+        PatchRender(*this, patch, contact_p, gain, z, dst, &truth, cache.get()).Render();
+    stats_.last_roi_seconds = SecondsSince(phase);
+  }
+  patch_cache_ = std::move(cache);
+}
+
+void TactileCamera::ReusePatch(const float gain[3], const std::int16_t* z, std::uint8_t* dst) {
+  const Clock::time_point start = Clock::now();
+  const PatchCache& cache = *patch_cache_;
+  const float read2 = static_cast<float>(options_.sensor.read_noise * options_.sensor.read_noise);
+  const float shot = static_cast<float>(options_.sensor.shot_gain);
+  for (std::size_t k = 0; k < cache.pixels.size(); ++k) {
+    const std::size_t j = 3 * static_cast<std::size_t>(cache.pixels[k]);
+    WritePixel(&cache.signal[3 * k], gain, z ? z + j : nullptr, read2, shot, dst + j);
+  }
+  stats_.last_roi_seconds = SecondsSince(start);
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -257,6 +257,39 @@ TEST_CASE("tactile camera: the same seed and calls give identical images, anothe
   CHECK(cv::countNonZero(AbsDiffSum(d.RenderReference(0), e.RenderReference(0)) > 30) > 1000);
 }
 
+TEST_CASE("tactile camera: a dwell's frames reuse the patch and equal a fresh render",
+          "[sim][camera]") {
+  const std::shared_ptr<const SimRig> rig = DefaultRig();
+  const Eigen::Vector3d ball = BallAt(*rig, 0.4, 30.0, 0.8);
+  const Eigen::Vector3d elsewhere = BallAt(*rig, 0.5, 120.0, 0.6);
+  TactileCamera dwell(rig), fresh(rig);
+  // The same ball frame after frame (other noise, another drift), then elsewhere and back: each
+  // frame is what a camera that renders it first gives, pixel for pixel, truth included.
+  const std::vector<std::pair<Eigen::Vector3d, std::uint64_t>> frames = {
+      {ball, 3}, {ball, 4}, {ball, 5}, {elsewhere, 6}, {ball, 7}};
+  for (const auto& [at, index] : frames) {
+    const double run_time = 1800.0 * static_cast<double>(index);
+    const cv::Mat reused = dwell.RenderAtBall(at, index, run_time);
+    const FrameTruth truth = SimGroundTruth::LastFrame(dwell);
+    TactileCamera first(rig);
+    const cv::Mat rendered = first.RenderAtBall(at, index, run_time);
+    const FrameTruth& expected = SimGroundTruth::LastFrame(first);
+    CHECK(cv::countNonZero(AbsDiffSum(reused, rendered)) == 0);
+    CHECK(truth.roi == expected.roi);
+    CHECK(truth.max_depth_mm == expected.max_depth_mm);
+    CHECK(truth.drift_gain.isApprox(expected.drift_gain, 0.0));
+    CHECK(cv::countNonZero(truth.contact_mask != expected.contact_mask) == 0);
+    cv::Mat rho_diff;
+    cv::absdiff(truth.rho, expected.rho, rho_diff);
+    rho_diff.convertTo(rho_diff, CV_32F);
+    cv::patchNaNs(rho_diff, 0.0);
+    CHECK(cv::countNonZero(rho_diff) == 0);
+  }
+  // Drift moved between the dwell's frames, so reuse did re-apply it.
+  CHECK(cv::countNonZero(AbsDiffSum(dwell.RenderAtBall(ball, 5, 0.0),
+                                    dwell.RenderAtBall(ball, 5, 3600.0))) > 1000);
+}
+
 TEST_CASE("tactile camera: a frame shows the ball where the machine is at the capture time",
           "[sim][camera]") {
   const std::shared_ptr<const SimRig> rig = DefaultRig();
