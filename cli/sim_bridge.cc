@@ -64,6 +64,9 @@ VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t
   options.cnc.history_pieces = 1u << 18;
   options.frame_log_capacity = 1u << 18;
   options.frame_socket = frame_socket;
+  // At instant motion nothing but the host should pace a probe: the serial line's 115200 baud
+  // (~10 ms for a press's lines) is not emulated either.
+  if (time_scale == 0.0) options.cnc.baud_rate = 0;
   if (tweak) tweak(options);
   VirtualSetup setup;
   setup.rig = std::make_unique<VirtualRig>(options);

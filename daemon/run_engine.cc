@@ -302,6 +302,7 @@ void RunSession::SettleAndRecord() {
 }
 
 RunReport RunSession::Awaiting(const Ask& ask) {
+  committer_.Wait();
   report_.outcome = RunOutcome::kAwaiting;
   report_.message = ask.message;
   SettleAndRecord();
@@ -342,6 +343,7 @@ RunReport RunSession::Run() {
                                std::to_string(db_.CountProbes(run_id_).planned) + " probes to go");
 
   auto finish = [&](RunOutcome outcome, RunState state, const std::string& message) {
+    committer_.Wait();
     report_.outcome = outcome;
     report_.message = message;
     SettleAndRecord();
@@ -388,7 +390,8 @@ RunReport RunSession::Run() {
       return finish(RunOutcome::kFailed, RunState::kInterrupted,
                     "safety limit: " + *safety_stop_ + ". Nothing of that line was sent.");
     }
-    const auto probe = db_.NextPendingProbe(run_id_, config_.engine.max_attempts);
+    const auto probe =
+        db_.NextPendingProbe(run_id_, config_.engine.max_attempts, committer_.InFlight());
     if (!probe) break;
     const PlannedProbe& planned = plan_.probes.at(static_cast<std::size_t>(probe->plan_index));
     if ((planned.press_machine - probe->plan.press_machine).norm() > 1e-6) {
@@ -407,7 +410,7 @@ RunReport RunSession::Run() {
         report.machine_position = press.mpos;
         report.sync_time = ToUnix(press.sync);
         report.frame_time = ToUnix(press.frame_time);
-        db_.CommitCapture(probe->id, press.frame, report);
+        committer_.Submit(probe->id, press.frame, report);
         ++report_.captured;
         ++probes_done_;
         const double dt = std::chrono::duration<double>(Clock::now() - t0).count();
@@ -445,6 +448,7 @@ RunReport RunSession::Run() {
         break;
     }
   }
+  committer_.Wait();
   Park();
   const ProbeCounts counts = db_.CountProbes(run_id_);
   return finish(RunOutcome::kDone, RunState::kDone,

@@ -19,6 +19,7 @@
 #include "gcode/grbl_client.h"
 #include "gcode/probe_program.h"
 #include "geometry/fisheye.h"
+#include "storage/capture_committer.h"
 
 namespace gs360 {
 namespace session {
@@ -87,7 +88,11 @@ class RunSession {
 
  public:
   RunSession(RunEngine& engine, std::int64_t run_id, SessionOverrides overrides)
-      : engine_(engine), run_id_(run_id), db_(engine.database_), overrides_(std::move(overrides)) {}
+      : engine_(engine),
+        run_id_(run_id),
+        db_(engine.database_),
+        committer_(engine.database_),
+        overrides_(std::move(overrides)) {}
 
   RunReport Run();
 
@@ -170,6 +175,8 @@ class RunSession {
   RunEngine& engine_;
   std::int64_t run_id_;
   RunDatabase db_;
+  // A probe's frame is encoded and committed while the machine goes to the next probe.
+  CaptureCommitter committer_;
   SessionOverrides overrides_;
   RunConfig config_;
   ProbePlan plan_;

@@ -65,8 +65,11 @@ tsan_tests=(
   '^daemon:the event hub delivers in order'
   '^daemon:api: plan, start, pause and resume a run'
   '^daemon:gs360d on SIGTERM'
-  # storage: status readers on their own connections while the writer commits
+  # storage: status readers on their own connections while the writer commits; the background
+  # capture committer beside the run loop's own writes
   '^storage:readers on other connections'
+  '^storage:the committer commits every capture'
+  '^storage:a failed background commit'
   # the GRBL client's reader thread against the virtual CNC's firmware and I/O threads
   '^gcode:client and virtual CNC:'
   '^gcode:the client streams over TCP'

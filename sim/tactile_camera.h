@@ -31,7 +31,9 @@
 // per-pixel random draws; the background's shot noise uses its drift-free level, < 1% off), then
 // re-renders only the pixels in the projected bounding box of the displaced patch: each refined
 // triangle is tested against the pixels its projection covers with an exact watertight ray test
-// (a z-buffer with ray-traced depths), and the visible hits are shaded. Its speed:
+// (a z-buffer with ray-traced depths), and the visible hits are shaded. The re-rendered pixels'
+// drift-free signal is kept: the next frame with the ball at exactly the same place (a dwell:
+// several frames of one press) only re-applies drift and noise to them. Its speed:
 // bench/bench_sim_camera, figures in docs/benchmarks.md.
 //
 // Images: cv::Mat CV_8UC3 in OpenCV's BGR channel order (cv::imwrite writes the right colours);
@@ -113,7 +115,8 @@ class TactileCamera {
  public:
   using Clock = std::chrono::steady_clock;
 
-  // Builds the static background (~0.5-1 s on two cores). The run starts now (SetRunStart).
+  // Builds the static background on `threads` threads (its time: bench/bench_sim_camera,
+  // docs/benchmarks.md, "Virtual rig"). The run starts now (SetRunStart).
   // Throws std::invalid_argument for invalid options; std::runtime_error if the rig's camera
   // sees no gel at all.
   explicit TactileCamera(std::shared_ptr<const SimRig> rig,
@@ -152,6 +155,7 @@ class TactileCamera {
   friend class SimGroundTruth;
   struct Background;
   class PatchRender;  // RenderInto's re-rendered region (tactile_camera.cc)
+  struct PatchCache;  // the last PatchRender's result, before drift and noise
 
   enum PixelKind : std::uint8_t { kOutside = 0, kGel = 1, kFin = 2, kNothing = 3 };
 
@@ -161,6 +165,11 @@ class TactileCamera {
   void RenderInto(const std::optional<Eigen::Vector3d>& ball, std::uint64_t frame_index,
                   double run_time_s, bool rigid, cv::Mat* out);
   std::uint64_t NoiseOffset(std::uint64_t frame_index) const;
+  // RenderInto's patch with the ball at `ball`: rendered into `dst` and kept in patch_cache_;
+  // or patch_cache_'s pixels written again with this frame's drift `gain` and noise `z`.
+  void RenderPatch(const Eigen::Vector3d& ball, bool rigid, const float gain[3],
+                   const std::int16_t* z, std::uint8_t* dst);
+  void ReusePatch(const float gain[3], const std::int16_t* z, std::uint8_t* dst);
 
   std::shared_ptr<const SimRig> rig_;
   TactileCameraOptions options_;
@@ -169,6 +178,7 @@ class TactileCamera {
   std::unique_ptr<GelPatchBuilder> rigid_patch_builder_;
   std::unique_ptr<Background> background_;
   std::unique_ptr<FrameTruth> last_truth_;
+  std::unique_ptr<PatchCache> patch_cache_;
   MachinePositionFn position_source_;
   Clock::time_point run_start_;
   std::uint64_t next_frame_index_ = 0;

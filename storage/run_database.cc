@@ -669,8 +669,8 @@ std::vector<ProbeRecord> RunDatabase::ListProbes(std::int64_t run_id,
   return out;
 }
 
-std::optional<ProbeRecord> RunDatabase::NextPendingProbe(std::int64_t run_id,
-                                                         int max_attempts) const {
+std::optional<ProbeRecord> RunDatabase::NextPendingProbe(std::int64_t run_id, int max_attempts,
+                                                         std::optional<std::int64_t> except) const {
   // Two index lookups (probes_by_state) instead of a scan past every captured probe.
   const Impl& c = *impl_;
   Transaction tx(c, Transaction::kRead);
@@ -678,15 +678,15 @@ std::optional<ProbeRecord> RunDatabase::NextPendingProbe(std::int64_t run_id,
   {
     Stmt s = c.Prepare("SELECT " GS360_PROBE_COLUMNS
                        " FROM probes p WHERE p.run_id = ? AND p.state = 'planned' "
-                       "ORDER BY p.plan_index LIMIT 1");
-    s.Int(1, run_id);
+                       "AND p.id != ? ORDER BY p.plan_index LIMIT 1");
+    s.Int(1, run_id).Int(2, except.value_or(-1));
     if (s.Step()) best = ReadProbe(s);
   }
   {
     Stmt s = c.Prepare("SELECT " GS360_PROBE_COLUMNS
                        " FROM probes p WHERE p.run_id = ? AND p.state = 'failed' "
-                       "AND p.attempts < ? ORDER BY p.plan_index LIMIT 1");
-    s.Int(1, run_id).Int(2, max_attempts);
+                       "AND p.attempts < ? AND p.id != ? ORDER BY p.plan_index LIMIT 1");
+    s.Int(1, run_id).Int(2, max_attempts).Int(3, except.value_or(-1));
     if (s.Step()) {
       ProbeRecord failed = ReadProbe(s);
       if (!best || failed.plan_index < best->plan_index) best = std::move(failed);

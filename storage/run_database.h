@@ -273,8 +273,10 @@ class RunDatabase {
   std::vector<ProbeRecord> ListProbes(std::int64_t run_id,
                                       std::optional<ProbeState> state = std::nullopt) const;
   // For resume: the first probe in plan order that is kPlanned, or kFailed with fewer than
-  // `max_attempts` attempts; std::nullopt when none is left.
-  std::optional<ProbeRecord> NextPendingProbe(std::int64_t run_id, int max_attempts = 1) const;
+  // `max_attempts` attempts, other than probe id `except` (a probe whose capture is being
+  // committed on another connection); std::nullopt when none is left.
+  std::optional<ProbeRecord> NextPendingProbe(std::int64_t run_id, int max_attempts = 1,
+                                              std::optional<std::int64_t> except = {}) const;
   ProbeCounts CountProbes(std::int64_t run_id) const;
 
   // Commits one press in one transaction: the frame (kind press), the reported position and sync

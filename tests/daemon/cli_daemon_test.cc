@@ -100,18 +100,20 @@ TEST_CASE(
     "the CLI drives a run on gs360d through pause, resume, a SIGKILL of the daemon, "
     "calibration and export",
     "[daemon][cli][e2e]") {
-  test::RigFixture f("cli", 110, 0.0);
+  // Enough probes that the run is still going when the test pauses and kills it: at instant
+  // motion a probe takes some 20-100 ms and each CLI poll a few hundred.
+  test::RigFixture f("cli", 300, 0.0);
   auto daemon = test::StartDaemonProcess(f);
   const auto& dir = f.dir;
 
   CliResult r =
-      Gs360(dir, daemon->url(), {"run", "start", "--name", "cli", "--probes", "110", "--json"});
+      Gs360(dir, daemon->url(), {"run", "start", "--name", "cli", "--probes", "300", "--json"});
   REQUIRE(r.exit_code == 0);
   const Json started = JsonOf(r);
   REQUIRE(started["run"]["id"] == 1);
   const int total = started["run"]["probes_total"];
-  CHECK(total >= 45);
-  CHECK(total <= 80);
+  CHECK(total >= 150);
+  CHECK(total <= 260);
 
   Json run = WaitStatus(dir, daemon->url(), [](const Json& s) { return s["probes_done"] >= 8; });
   CHECK(run["state"] == "running");
@@ -156,7 +158,7 @@ TEST_CASE(
   // Every probe pressed; the few the true camera cannot see fail for want of an impression.
   const int captured = run["probes_done"];
   CHECK(captured + run["probes_failed"].get<int>() == total);
-  CHECK(captured >= total - 3);
+  CHECK(captured >= total - 6);
 
   {
     RunDatabaseOptions ro;

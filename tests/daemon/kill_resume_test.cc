@@ -69,7 +69,11 @@ TEST_CASE(
   const char* rounds_env = std::getenv("GS360_KILL_ROUNDS");
   std::mt19937 rng(seed ? static_cast<unsigned>(std::stoul(seed)) : 2026u);
   const int rounds = rounds_env ? std::stoi(rounds_env) : 6;
-  std::uniform_int_distribution<int> delay_ms(1500, 6000);
+  // Each round kills after a random number of further probes (and a random moment within one):
+  // at instant motion a probe takes some 20-100 ms, so a kill at a random time would as likely
+  // come after the run ended; by count the rounds stay inside the run, at any machine's pace.
+  std::uniform_int_distribution<int> probes_more(2, std::max(3, 300 / rounds));
+  std::uniform_int_distribution<int> moment_ms(0, 60);
   std::int64_t last_captured = 0;
   for (int round = 0; round < rounds; ++round) {
     auto daemon = test::StartDaemonProcess(f);
@@ -78,7 +82,13 @@ TEST_CASE(
     const Json before = client.Get("/api/v1/runs/1");
     CHECK(before["state"] == (round == 0 ? "created" : "interrupted"));
     client.Post(std::string("/api/v1/runs/1/") + (round == 0 ? "start" : "resume"));
-    std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms(rng)));
+    const std::int64_t kill_at = last_captured + probes_more(rng);
+    WaitFor(client, 1, [&](const Json& r) {
+      const std::string state = r["state"];
+      const bool going = state == "starting" || state == "running" || state == "interrupted";
+      return r["probes_done"].get<std::int64_t>() >= kill_at || !going;
+    });
+    std::this_thread::sleep_for(std::chrono::milliseconds(moment_ms(rng)));
     // Nothing moved the machine by hand: a resume never needs the user to confirm its position.
     const Json during = client.Get("/api/v1/runs/1");
     INFO("round " << round << ": " << during.dump());

@@ -242,6 +242,9 @@ TEST_CASE("failed and skipped probes, and the order a resume follows", "[storage
   CHECK(db.NextPendingProbe(run, 2)->plan_index == 1);
   CHECK(db.NextPendingProbe(run, 3)->plan_index == 1);
   CHECK(db.ListProbes(run, ProbeState::kFailed).size() == 2);
+  // A probe whose capture is being committed elsewhere is passed over, planned or failed.
+  CHECK(db.NextPendingProbe(run, 1, ids[3])->plan_index == 5);
+  CHECK(db.NextPendingProbe(run, 2, ids[1])->plan_index == 3);
 
   // A retry that succeeds counts both attempts and keeps the last error for the record.
   db.CommitCapture(ids[1], image, Report(2));
