@@ -38,6 +38,7 @@ double CpuSeconds() {
 
 void RegisterDaemonBench(CLI::App& bench, CommandContext& ctx);  // bench_daemon.cc
 void RegisterReconBench(CLI::App& bench, CommandContext& ctx);   // bench_recon.cc
+void RegisterSweepBench(CLI::App& bench, CommandContext& ctx);   // bench_sweep.cc
 
 void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
   static BenchOptions o;
@@ -45,6 +46,7 @@ void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
   bench->require_subcommand(1);
   RegisterDaemonBench(*bench, ctx);
   RegisterReconBench(*bench, ctx);
+  RegisterSweepBench(*bench, ctx);
   auto* acq = bench->add_subcommand(
       "acquisition",
       "Time a run: probing wall time vs the planner's estimate, host time per probe");

@@ -4,11 +4,8 @@
 #include <catch2/catch.hpp>
 
 #include <assimp/scene.h>
-#include <sys/wait.h>
 
-#include <array>
 #include <assimp/Importer.hpp>
-#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <string>
@@ -21,6 +18,7 @@
 #include "recon/model_bundle.h"
 #include "sim/tactile_camera.h"
 #include "sim/virtual_rig.h"
+#include "tests/cli/run_gs360.h"
 
 using namespace gs360;
 using Catch::Contains;
@@ -28,22 +26,8 @@ namespace fs = std::filesystem;
 
 namespace {
 
-struct Result {
-  int status = -1;
-  std::string out;  // stdout and stderr
-};
-
-Result Gs360(const std::string& args) {
-  const std::string command = std::string(GS360_BINARY_DIR) + "/cli/gs360 " + args + " 2>&1";
-  Result r;
-  FILE* pipe = ::popen(command.c_str(), "r");
-  REQUIRE(pipe != nullptr);
-  std::array<char, 4096> buf{};
-  while (std::fgets(buf.data(), buf.size(), pipe)) r.out += buf.data();
-  const int status = ::pclose(pipe);
-  r.status = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return r;
-}
+using Result = test::Gs360Result;
+using test::Gs360;
 
 // One model and a few frames for every test case of this file (calibrating takes seconds).
 struct Fixture {
