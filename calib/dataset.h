@@ -29,13 +29,15 @@ namespace gs360 {
 enum class Split : std::uint8_t { kTrain = 0, kValidation = 1, kTest = 2 };
 
 struct DatasetOptions {
-  // >= 1. Capped further by max_samples: about 450 on 2,000 probes, 89 on 10,000. (250 -> 450
-  // on the 2,000-probe cylinder: validation loss 0.0138 -> 0.0112, depth 0.0267 -> 0.0249 mm.)
+  // >= 1. Capped further by max_samples: about 450 on 2,000 probes, 90 on 10,000. Raising the
+  // cap from 250 lowered the validation loss and the depth error on the 2,000-probe cylinder
+  // (figures in docs/benchmarks.md, "Calibration", session 5 steps).
   int max_contact_samples_per_probe = 500;
   // Budget for the whole dataset (contact and non-contact samples; 0 = none): with many probes
   // the per-probe cap drops to ContactSamplesPerProbe() so that training time stays bounded.
   // More probes with fewer pixels each beat fewer probes with more (neighbouring pixels are
-  // nearly redundant). The default keeps 10,000 probes within the time target (train 264 s).
+  // nearly redundant). The default keeps 10,000 probes within the time target (training time
+  // in docs/benchmarks.md, "Calibration").
   std::int64_t max_samples = 1'200'000;
   double non_contact_fraction = 0.25;  // [0, 0.9]
   int min_contact_pixels = 8;          // probes with fewer rendered contact pixels are left out

@@ -15,12 +15,13 @@
 // point and the contact normal (at the paper estimate). Seen obliquely, an imprint is a bump
 // seen from the side; its far side (normals turned toward the occluding contour) changes colour
 // much less than its near side, so the region an impression finder thresholds loses the far side
-// and its centre moves toward the near side. Measured on the virtual rig's stored runs
-// (bench/bench_pose_db.cc, hull centroid minus the rigid imprint's): 0.1-0.5 px below 50 deg,
-// 1.0-1.8 px outward at 50-70 deg on cylinder, cone and spline alike. The rigid bias model below
+// and its centre moves toward the near side: little below 50 deg, several times more beyond, on
+// cylinder, cone and spline alike (bench/bench_pose_db.cc on the virtual rig's stored runs;
+// figures in docs/benchmarks.md, "Calibration", "Pose, session 4"). The rigid bias model below
 // cannot predict shading, and on the cone these biased residuals straddle the outlier bound, so
-// the robust fit kept a biased subset (0.10 deg). The refinement therefore leaves them out (at
-// least min_view_fraction of the observations are kept: the least oblique ones).
+// the robust fit kept a biased subset and missed the rotation target. The refinement therefore
+// leaves them out (at least min_view_fraction of the observations are kept: the least oblique
+// ones).
 // Bias model (model_bias): the centroid of an impression is not the projection of its contact
 // point -- the imprint is a disc seen obliquely through a fisheye. With the gel mesh given, each
 // refinement round builds the surface map (recon/surface_map.h) for the current pose, renders

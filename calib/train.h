@@ -49,17 +49,17 @@ LearningRateSchedule ParseLearningRateSchedule(std::string_view s);
 
 struct TrainOptions {
   // Hidden layer widths (may be empty: linear model). 128 wide: with the context features
-  // (recon/features.h) the mean depth error on the 2,000-probe cylinder falls 0.037 -> 0.029
-  // -> 0.027 mm from 64 to 96 to 128 wide, at 1x, 2x, 2.4x the training time.
+  // (recon/features.h) each step from 64 to 96 to 128 wide lowered the depth error, for more
+  // training time (chosen by measurement; figures in docs/benchmarks.md, "Calibration").
   std::vector<int> hidden = {128, 128, 128};
-  // tanh: on bench_train --compare (200 k samples, 60 epochs, 2 seeds) tanh and silu tie (val
-  // loss 0.0074 / 0.0071 vs 0.0070 / 0.0073), relu is 15-20% worse; tanh is the faster in
-  // inference. The plateau schedule beat cosine by 0-5%.
+  // tanh: on the validation loss tanh and silu tie and relu is worse; tanh is the faster in
+  // inference. The plateau schedule did no worse than cosine. (Chosen by measurement with
+  // bench/bench_train --compare; figures in docs/benchmarks.md, "Calibration".)
   Activation activation = Activation::kTanh;
-  // Fourier features of the first two inputs, the pixel position (recon/mlp.h). Measured on the
-  // 2,011-probe calibration set (64-64-64, 60 epochs): validation loss 0.082 without, 0.066 with
-  // 3 or 4 frequencies, 0.070 with 6 (it starts to fit noise); 128-wide layers without them
-  // reach the same 0.066 at three times the inference cost. {0, 0, 1} turns them off.
+  // Fourier features of the first two inputs, the pixel position (recon/mlp.h). Chosen by
+  // measurement: 3 or 4 frequencies lower the validation loss, 6 start to fit noise, and wider
+  // layers without them only match it at a higher inference cost (figures in
+  // docs/benchmarks.md, "Calibration"). {0, 0, 1} turns them off.
   FourierFeatures fourier = {2, 4, 1.0f};
   int batch_size = 1024;
   // Adam.
@@ -72,8 +72,8 @@ struct TrainOptions {
   double plateau_factor = 0.5;      // in (0, 1)
   int plateau_epochs = 3;           // >= 1
   double plateau_threshold = 1e-3;  // relative improvement that counts, >= 0
-  // 60 epochs of 3 M samples take about 2.5 min on 2 busy cores (bench_train): the time budget
-  // of the whole calibration is 10 min.
+  // Sized so that training fits the whole calibration's time budget of 10 min (training times:
+  // bench/bench_train and the calibration runs, docs/benchmarks.md, "Calibration").
   int max_epochs = 60;
   // Early stopping: stop after `patience` epochs in which the validation loss did not improve
   // by more than plateau_threshold (relative) on its best; 0 disables early stopping. Whatever

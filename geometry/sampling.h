@@ -63,7 +63,8 @@ struct BlueNoiseOptions {
 // Blue-noise samples of the mesh (or of the region `keep` accepts). Returns options.count samples,
 // or fewer only when the region is too small to yield that many candidates (see SampleUniform);
 // the result is in candidate-draw order. Throws std::invalid_argument for invalid options or a
-// mesh with zero area. About 0.1 s for 10,000 samples (50,000 candidates) on one core.
+// mesh with zero area. Single-threaded; its speed: bench/bench_sampling, figures in
+// docs/benchmarks.md ("Geometry").
 std::vector<SurfaceSample> SampleBlueNoise(const TriangleMesh& mesh,
                                            const BlueNoiseOptions& options = {},
                                            const SamplePredicate& keep = {});

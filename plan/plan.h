@@ -230,8 +230,9 @@ ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options);
 // their travel waypoints as stored, then the last retract and `park_machine` (empty: none).
 // Motion between two syncs (retract, travel, approach, press) is planned as one path under
 // options.junction_model; every sync adds its dwell and the host time. Against the virtual CNC
-// executing the same G-code in real time, the kGrbl motion time agrees to ~0.1%; kStop is an
-// upper bound (~2% above on probe paths).
+// executing the same G-code in real time, the kGrbl motion time matches the machine's (within
+// 0.5% or 5 ms: tests/gcode/plan_sim_timing_test.cc); kStop is an upper bound. Measured
+// agreement: docs/benchmarks.md, "Virtual rig".
 PlanEstimate EstimatePlan(const std::vector<PlannedProbe>& probes,
                           const std::vector<Eigen::Vector3d>& park_machine,
                           const PlanOptions& options);

@@ -47,9 +47,9 @@ struct HeightFieldOptions {
   // Regions whose imprint is seen more squarely than this (mean view angle over the pixels
   // with |slope| > 0.3) are integrated along the rays instead (the discontinuity-aware psi
   // integrator, recon/integration.h). 0 = always the height field, the default: with exact
-  // slopes the rays are the better parametrisation below 30 deg (bench_integration: 0.004 mm
-  // against 0.010), but with the MLP's slopes the height field is (0.0170 mm against 0.0238 on
-  // the virtual rig's < 30 deg band). [0, 90).
+  // slopes the rays are the better parametrisation below 30 deg, but with the MLP's slopes the
+  // height field is (chosen by measurement: bench/bench_integration and the virtual rig's
+  // validation, figures in docs/benchmarks.md, "Calibration"). [0, 90).
   double min_view_angle_deg = 0.0;
   // The passes for an imprint seen at `imprint_view_deg` (iterations or oblique_iterations).
   template <typename Self, typename Visitor>

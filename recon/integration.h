@@ -112,9 +112,10 @@ cv::Mat IndentationFromRho(const SurfaceMap& map, const cv::Rect& roi, const cv:
 // and what the gel's own displacement is. IndentationFromRho projects the along-ray gap on the
 // pixel's own undeformed normal instead: the same at the deepest point of an exact surface, but
 // where a reconstructed point sits sideways of its pixel's surface point (rims, bridged hidden
-// parts) it measures to the wrong tangent plane; on the 2,000-probe cylinder it put the peak
-// 0.047 mm too deep on average, this 0.014 mm. Found by a few foot-point steps: the foot of x on
-// the tangent plane at x0, projected through `camera` (the map's) to the pixel whose x0 is next.
+// parts) it measures to the wrong tangent plane and reads the peak too deep on average; this one
+// far less (figures in docs/benchmarks.md, "Calibration", session 5, "Peak"). Found by a few
+// foot-point steps: the foot of x on the tangent plane at x0, projected through `camera` (the
+// map's) to the pixel whose x0 is next.
 // Where a step lands off the visible surface (a fin, the image's edge), the last valid step's
 // value is kept. NaN where the map has no gel or rho is not finite. Throws
 // std::invalid_argument for a rho of the wrong type or size.

@@ -13,8 +13,9 @@
 // with phi_p = w_j a_i for p = i * frequencies + j (i < inputs, j < frequencies), w_j = base 2^j
 // (rad per normalised unit). They let a small network follow how the illumination changes across
 // the image (fin shadows, LED fall-off), which it cannot fit from raw (u, v) without many more
-// units: on the 2,011-probe calibration set, 4 frequencies on (u, v) cut the validation loss by 20%
-// for 12% more parameters. layers()[0].weight then has first_layer_input_size() columns.
+// units (chosen by measurement: a lower validation loss for a few more first-layer weights;
+// figures in docs/benchmarks.md, "Calibration", session 4). layers()[0].weight then has
+// first_layer_input_size() columns.
 //
 // Batches are column-major matrices with one sample per COLUMN ([features, samples]).
 //

@@ -65,7 +65,9 @@ std::array<std::uint8_t, 3 * kFingerprintPixels> FrameFingerprint(const cv::Mat&
 
 class VirtualRig {
  public:
-  // Builds the rig (camera background: ~1 s), opens the pty and the frame socket.
+  // Builds the rig (including the camera's static background, whose build time is measured by
+  // bench/bench_sim_camera: docs/benchmarks.md, "Virtual rig"), opens the pty and the frame
+  // socket.
   explicit VirtualRig(const VirtualRigOptions& options);
   ~VirtualRig();
   VirtualRig(const VirtualRig&) = delete;
