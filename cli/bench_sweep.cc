@@ -321,6 +321,7 @@ int RunSweep(const SweepArgs& a, const CommandContext& ctx) {
     return kExitOk;
   }
   std::filesystem::create_directories(work);
+  std::filesystem::create_directories(out.parent_path());
   if (!std::filesystem::exists(out)) {
     std::ofstream header(out);
     header << kKeyColumns;

@@ -55,7 +55,7 @@ TEST_CASE("bench sweep writes a row per configuration and resumes without redoin
   const fs::path dir = fs::temp_directory_path() / ("gs360-sweep-" + std::to_string(::getpid()));
   fs::remove_all(dir);
   fs::create_directories(dir);
-  const fs::path csv = dir / "sweep.csv";
+  const fs::path csv = dir / "new" / "sweep.csv";  // its folder is made
   const std::string grid =
       "bench sweep --shapes cylinder --probes 40 --seeds 3 --depths 1 "
       "--epochs 2 --out " +
@@ -83,7 +83,7 @@ TEST_CASE("bench sweep writes a row per configuration and resumes without redoin
   CHECK(Column(rows, 2, "width") == "16");
   // Both calibrations share one acquisition and its camera stages.
   CHECK(Column(rows, 1, "s_pose") == Column(rows, 2, "s_pose"));
-  const cv::Mat plot = cv::imread((dir / "sweep.png").string());
+  const cv::Mat plot = cv::imread((dir / "new" / "sweep.png").string());
   CHECK(plot.cols == 1280);
   CHECK(plot.rows == 560);
   CHECK_THAT(r.out, Contains("none of the configurations run meets every target"));
@@ -101,7 +101,7 @@ TEST_CASE("bench sweep writes a row per configuration and resumes without redoin
   {
     RunDatabaseOptions ro;
     ro.read_only = true;
-    RunDatabase db(dir / "sweep-runs" / "cylinder-p40-s3.db", ro);
+    RunDatabase db(dir / "new" / "sweep-runs" / "cylinder-p40-s3.db", ro);
     CHECK(db.ListRuns().size() == 1);
   }
   r = Gs360(grid + " --widths 8,16,24 --dry-run");
