@@ -18,8 +18,10 @@
 #include "cli/daemon_process.h"
 #include "cli/progress.h"
 #include "cli/run_view.h"
+#include "cli/sim_args.h"
 #include "cli/sim_bridge.h"
 #include "cli/sim_truth.h"
+#include "daemon/daemon_config.h"
 #include "gcode/grbl_client.h"
 #include "sim/virtual_rig.h"
 
@@ -38,17 +40,29 @@ struct DemoOptions {
   std::uint64_t seed = 1;
   int max_epochs = 0;
   bool no_calibrate = false;
+  SimArgs sim;
 };
 
 double Since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
-void WriteDaemonConfig(const std::filesystem::path& path, const VirtualSetup& setup) {
+// The user's gs360d.toml (--config) or the defaults, with the virtual rig's machine and camera,
+// this folder for data and a free loopback port.
+void WriteDaemonConfig(const std::filesystem::path& path, const VirtualSetup& setup,
+                       const SimArgs& sim) {
+  DaemonConfig daemon;
+  if (!sim.config.empty()) daemon = LoadDaemonConfig(sim.config);
+  daemon.run = setup.config;
+  daemon.data_dir = ".";
+  daemon.server.listen = "127.0.0.1";
+  daemon.server.port = 0;
+  daemon.server.token.clear();
+  daemon.calibration.checkerboards = "checkerboards";
   std::ofstream out(path);
-  out << "# gs360d for `gs360 demo`: the virtual rig of this process.\n"
-         "data_dir = \".\"\n\n[server]\nport = 0\n\n"
-      << setup.DaemonToml() << "\n[calibration]\ncheckerboards = \"checkerboards\"\n";
+  out << "# gs360d for `gs360 demo`: the virtual rig of this process"
+      << (sim.config.empty() ? std::string() : ", described by " + sim.config) << ".\n"
+      << DaemonConfigToToml(daemon);
   if (!out.flush()) throw std::runtime_error("cannot write " + path.string());
 }
 
@@ -77,28 +91,32 @@ int RunDemo(const DemoOptions& o) {
           : std::filesystem::path(o.data_dir));
   std::filesystem::create_directories(dir);
   std::printf("gs360 demo: %s sensor, %d candidate probes, virtual machine at %s\n",
-              o.shape.c_str(), o.probes,
+              o.sim.config.empty() ? o.shape.c_str() : o.sim.config.c_str(), o.probes,
               o.time_scale > 0.0 ? (FormatFixed(o.time_scale, 1) + "x real time").c_str()
                                  : "instant motion");
-  RunConfig config;
-  config.rig.shape.shape = ParseSensorShape(o.shape);
-  VirtualSetup setup = MakeVirtualSetup(config, o.time_scale, o.seed, dir / "camera.sock");
+  RunConfig config = BaseRunConfig(o.sim);
+  if (o.sim.config.empty()) config.rig.shape.shape = ParseSensorShape(o.shape);
+  VirtualSetup setup =
+      MakeVirtualSetup(config, o.time_scale, o.seed, dir / "camera.sock", {},
+                       [&](VirtualRigOptions& rig_options) { ApplySimArgs(o.sim, &rig_options); });
   config = setup.config;
   VirtualRig& rig = *setup.rig;
   std::printf("virtual rig: CNC on %s, camera on %s (%s)\n", rig.PtyPath().c_str(),
               rig.FrameUri().c_str(), rig.rig()->Describe().c_str());
   // The lab's checkerboard shots, taken through the (hidden) true lens before assembly.
   const int boards = WriteSimCheckerboards(*rig.rig(), dir / "checkerboards", 16, o.seed);
-  WriteDaemonConfig(dir / "gs360d.toml", setup);
+  WriteDaemonConfig(dir / "gs360d.toml", setup, o.sim);
   DaemonProcess daemon(FindGs360d(), dir / "gs360d.toml", dir, dir / "gs360d.log");
   std::printf("gs360d: %s (data folder %s, log gs360d.log)\ndashboard: %s/\n\n",
               daemon.url().c_str(), dir.c_str(), daemon.url().c_str());
 
   DaemonClient client(daemon.url(), "");
-  const Json created = client.Post("/api/v1/runs", {{"name", "demo-" + o.shape},
-                                                    {"shape", {{"type", o.shape}}},
-                                                    {"probes", o.probes},
-                                                    {"plan", {{"seed", o.seed}}}});
+  // With --config the daemon's own [rig] is the sensor: the request names no shape.
+  Json run_request = {{"name", "demo-" + (o.sim.config.empty() ? o.shape : std::string("config"))},
+                      {"probes", o.probes},
+                      {"plan", {{"seed", o.seed}}}};
+  if (o.sim.config.empty()) run_request["shape"] = {{"type", o.shape}};
+  const Json created = client.Post("/api/v1/runs", run_request);
   const std::int64_t id = created["id"].get<std::int64_t>();
   std::printf("created run %lld\n", static_cast<long long>(id));
   PrintPlan(stdout, created["plan"]);
@@ -155,7 +173,8 @@ void RegisterDemoCommand(CLI::App& app, CommandContext& ctx) {
       "demo",
       "The whole product on the simulated rig, through gs360d: plan, probe, capture, store, "
       "calibrate, validate");
-  demo->add_option("--shape", o.shape, "Sensor: cylinder, cone or spline")->capture_default_str();
+  auto* shape = demo->add_option("--shape", o.shape, "Sensor: cylinder, cone or spline")
+                    ->capture_default_str();
   demo->add_option("--probes", o.probes, "Candidate points sampled on the sensor")
       ->capture_default_str();
   demo->add_option("--time-scale", o.time_scale,
@@ -168,6 +187,8 @@ void RegisterDemoCommand(CLI::App& app, CommandContext& ctx) {
   demo->add_option("--max-epochs", o.max_epochs,
                    "Training epochs at most (default: the trainer's)");
   demo->add_flag("--no-calibrate", o.no_calibrate, "Stop after the acquisition");
+  AddSimArgs(demo, &o.sim);
+  shape->excludes("--config");
   demo->callback([&ctx] { ctx.exit_code = RunDemo(o); });
 }
 

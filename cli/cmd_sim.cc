@@ -6,6 +6,7 @@
 
 #include "base/json_reader.h"
 #include "cli/commands.h"
+#include "cli/sim_args.h"
 #include "cli/sim_bridge.h"
 #include "rig/rig_config.h"
 #include "sim/virtual_cnc.h"
@@ -26,6 +27,7 @@ struct SimOptions {
   std::string shape = "cylinder";
   std::string socket;
   std::uint64_t seed = 1;
+  SimArgs sim;
 };
 
 }  // namespace
@@ -52,18 +54,22 @@ void RegisterSimCommands(CLI::App& app, CommandContext& ctx) {
       "Serve the whole virtual rig: the CNC on a pty and the tactile camera on a socket");
   rig->add_option("--time-scale", o.time_scale, "Machine seconds per wall second (0 = instant)")
       ->capture_default_str();
-  rig->add_option("--shape", o.shape, "cylinder, cone or spline")->capture_default_str();
+  auto* shape =
+      rig->add_option("--shape", o.shape, "cylinder, cone or spline")->capture_default_str();
   rig->add_option("--socket", o.socket, "Frame socket path (default: in the temp directory)");
   rig->add_option("--seed", o.seed, "Seed of the hidden true camera and the noise")
       ->capture_default_str();
+  AddSimArgs(rig, &o.sim);
+  shape->excludes("--config");
   rig->callback([] {
-    RigConfig config;
-    config.shape.shape = ParseSensorShape(o.shape);
+    RigConfig config = BaseRunConfig(o.sim).rig;
+    if (o.sim.config.empty()) config.shape.shape = ParseSensorShape(o.shape);
     VirtualRigOptions options;
     options.rig = SimRigOptionsFor(config, o.seed);
     options.camera.sensor.seed = o.seed;
     options.cnc.time_scale = o.time_scale;
     options.frame_socket = o.socket;
+    ApplySimArgs(o.sim, &options);
     VirtualRig virtual_rig(options);
     std::printf("%s\n%s\n", virtual_rig.PtyPath().c_str(), virtual_rig.FrameUri().c_str());
     std::fflush(stdout);

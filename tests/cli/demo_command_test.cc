@@ -1,0 +1,104 @@
+// `gs360 demo` as a user runs it, on a held-out rig described by a gs360d.toml: the daemon gets
+// that rig, the virtual rig is built from it, and every frame is checked against its truth.
+
+#include <catch2/catch.hpp>
+
+#include <unistd.h>
+
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include "cli/sim_args.h"
+#include "daemon/calibration_inputs.h"
+#include "storage/run_database.h"
+#include "tests/cli/run_gs360.h"
+
+using namespace gs360;
+using Catch::Contains;
+namespace fs = std::filesystem;
+using test::Gs360;
+
+namespace {
+
+struct TempDir {
+  fs::path path = fs::temp_directory_path() / ("gs360-demo-cmd-" + std::to_string(::getpid()));
+  TempDir() {
+    fs::remove_all(path);
+    fs::create_directories(path);
+  }
+  ~TempDir() { fs::remove_all(path); }
+};
+
+}  // namespace
+
+TEST_CASE("demo runs a held-out rig from a gs360d.toml through the daemon", "[cli][demo]") {
+  TempDir dir;
+  const fs::path config = dir.path / "heldout.toml";
+  std::ofstream(config) << "# a slimmer spline finger, the camera lower, thinner fins\n"
+                           "[rig.shape]\ntype = \"spline\"\n[rig.shape.spline]\n"
+                           "control_points = [[0, 9], [8, 8.5], [16, 8], [22, 7.5], [26, 5], "
+                           "[29, 0]]\n[rig.fins]\nthickness = 0.4\n[rig.camera]\ncamera_z = -2.0\n";
+  const fs::path data = dir.path / "data";
+  const auto r = Gs360("demo --config " + config.string() + " --probes 80 --no-calibrate " +
+                       "--perturbation 2 --read-noise 2 --data-dir " + data.string());
+  INFO(r.out);
+  REQUIRE(r.status == 0);
+  CHECK_THAT(r.out, Contains("(spline)"));
+  CHECK_THAT(r.out, Contains("0 taken off the press point, 0 unverifiable"));
+
+  RunDatabaseOptions ro;
+  ro.read_only = true;
+  RunDatabase db(data / "gs360.db", ro);
+  const RunConfig stored = StoredRunConfig(db, 1);
+  CHECK(stored.rig.shape.shape == SensorShape::kSpline);
+  REQUIRE(stored.rig.shape.spline.control_points.size() == 6);
+  CHECK(stored.rig.shape.spline.control_points[1].y() == 8.5);
+  CHECK(stored.rig.camera_z == -2.0);
+  CHECK(stored.rig.fins.thickness == 0.4);
+  CHECK(db.CountProbes(1).captured > 40);
+}
+
+TEST_CASE("demo names the file, line and key of a bad rig description", "[cli][demo]") {
+  TempDir dir;
+  const fs::path config = dir.path / "bad.toml";
+  std::ofstream(config) << "[rig.shape]\ntype = \"spline\"\n[rig.fins]\nthicknes = 0.4\n";
+  auto r = Gs360("demo --config " + config.string() + " --no-calibrate --data-dir " +
+                 (dir.path / "data").string());
+  CHECK(r.status != 0);
+  CHECK_THAT(r.out, Contains("bad.toml:4: rig.fins.thicknes: unknown key"));
+  r = Gs360("demo --config " + config.string() + " --shape cone");
+  CHECK(r.status != 0);
+  CHECK_THAT(r.out, Contains("--shape excludes --config"));
+}
+
+TEST_CASE("the virtual rig's knobs scale its hidden truth and noise, and refuse a folded lens",
+          "[cli][demo]") {
+  cli::SimArgs args;
+  args.perturbation = 2.0;
+  args.read_noise = 3.0;
+  args.drift = 0.0;
+  VirtualRigOptions options;
+  const TruePerturbationOptions before = options.rig.perturbation;
+  cli::ApplySimArgs(args, &options);
+  CHECK(options.rig.perturbation.translation_mm == 2.0 * before.translation_mm);
+  CHECK(options.rig.perturbation.focal_relative == 2.0 * before.focal_relative);
+  CHECK(options.rig.perturbation.k1 == 2.0 * before.k1);
+  CHECK(options.camera.sensor.read_noise == 3.0);
+  CHECK(options.camera.sensor.drift_amplitude == 0.0);
+  CHECK(options.camera.sensor.noise);
+
+  args = {};
+  args.perturbation = 0.0;
+  args.no_noise = true;
+  VirtualRigOptions exact;
+  cli::ApplySimArgs(args, &exact);
+  CHECK(exact.rig.perturbation.rotation_deg == 0.0);
+  CHECK_FALSE(exact.camera.sensor.noise);
+
+  // 25 times the default focal offset is 25 %: past what the simulator accepts.
+  args = {};
+  args.perturbation = 25.0;
+  VirtualRigOptions folded;
+  CHECK_THROWS_WITH(cli::ApplySimArgs(args, &folded), Contains("--perturbation 25.00"));
+}
