@@ -641,6 +641,7 @@ TriangleMesh MakeSensorMesh(const SensorShapeOptions& options) {
 // Fins
 
 TriangleMesh MakeFin(const FinOptions& options, const RevolutionProfile& profile, FinPlane plane) {
+  if (!options.enabled) return {};
   const FinOutline outline = ComputeFinOutline(options, profile);
   const int m = static_cast<int>(outline.points.size()) - 1;  // top index
   // Polygon CCW in (a, z): right chain up, then left chain down (the apex is shared).
@@ -699,6 +700,7 @@ TriangleMesh MakeFins(const FinOptions& options, const RevolutionProfile& profil
 
 double FinHalfWidthAt(const FinOptions& options, const RevolutionProfile& profile, double z) {
   options.Check();
+  if (!options.enabled) return 0.0;
   // Same clipping as ComputeFinOutline, without tabulating the whole outline (~100 profile
   // evaluations per call). The fold check is MakeFin's.
   const double z0 = Offset(profile, 0.0, options.inset).y();

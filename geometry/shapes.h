@@ -144,6 +144,8 @@ TriangleMesh MakeSensorMesh(const SensorShapeOptions& options);
 // the profile curve offset inward along its normal by `inset`, clipped to bottom_z <= z <= top_z;
 // at the top the two half-outlines meet on the axis (or are cut flat at top_z).
 struct FinOptions {
+  // false: a sensor without fins (MakeFin / MakeFins give empty meshes, FinHalfWidthAt 0).
+  bool enabled = true;
   double thickness = 0.45;  // mm, board plus LEDs
   double inset = 1.5;       // mm, from the outer surface to the board edge (gel + shell)
   double bottom_z = 0.0;    // mm

@@ -79,7 +79,8 @@ nlohmann::json RigConfigToJson(const RigConfig& c) {
       {"shape", SensorShapeToJson(c.shape)},
       {"mesh_path", c.mesh_path},
       {"fins",
-       {{"thickness", c.fins.thickness},
+       {{"enabled", c.fins.enabled},
+        {"thickness", c.fins.thickness},
         {"inset", c.fins.inset},
         {"bottom_z", c.fins.bottom_z},
         {"top_z", c.fins.top_z}}},
@@ -138,6 +139,7 @@ void ReadRigConfig(JsonReader& r, RigConfig& c) {
   r.Object("shape", [&](JsonReader& s) { ReadSensorShape(s, c.shape); });
   r.Get("mesh_path", c.mesh_path);
   r.Object("fins", [&](JsonReader& o) {
+    o.Get("enabled", c.fins.enabled);
     o.Get("thickness", c.fins.thickness);
     o.Get("inset", c.fins.inset);
     o.Get("bottom_z", c.fins.bottom_z);

@@ -79,13 +79,17 @@ Lighting::Lighting(const LightingOptions& options, const RevolutionProfile& prof
   options_.Check();
   fins.Check();
   // Fin outline table (FinHalfWidthAt solves for the offset curve each call: too slow per ray).
+  // A sensor without fins keeps its LEDs where the boards would stand; nothing casts shadows.
+  fins_cast_shadows_ = fins.enabled;
+  FinOptions outline = fins;
+  outline.enabled = true;
   const double height = profile.Height();
   const double z_top = std::min(height, fins.top_z);
   fin_z0_ = fins.bottom_z;
   fin_dz_ = std::max(1e-9, (z_top - fin_z0_) / (kFinTableSize - 1));
   fin_half_width_.resize(kFinTableSize);
   for (int i = 0; i < kFinTableSize; ++i) {
-    fin_half_width_[i] = FinHalfWidthAt(fins, profile, fin_z0_ + i * fin_dz_);
+    fin_half_width_[i] = FinHalfWidthAt(outline, profile, fin_z0_ + i * fin_dz_);
   }
   fin_half_width_.push_back(0.0);  // guard for interpolation at the top
 
@@ -141,6 +145,7 @@ double Lighting::FinHalfWidth(double z) const {
 bool Lighting::FinBlocks(const Eigen::Vector3d& a, const Eigen::Vector3d& b) const {
   // Each fin is a slab around a plane through the axis (x = 0: yz fin, y = 0: xz fin); its
   // thickness is negligible for the crossing test, its outline is |along| <= half-width(z).
+  if (!fins_cast_shadows_) return false;
   for (int plane_axis = 0; plane_axis < 2; ++plane_axis) {
     const double da = a[plane_axis], db = b[plane_axis];
     if (da * db >= 0.0) continue;  // both on one side (or on the plane: the LED's own board)

@@ -78,7 +78,8 @@ class Lighting {
   Eigen::Array3d Shade(const Eigen::Vector3d& point, const Eigen::Vector3d& outward_normal,
                        const Eigen::Vector3d& to_camera) const;
 
-  // True when a fin blocks the segment from `a` to `b` (both sensor frame).
+  // True when a fin blocks the segment from `a` to `b` (both sensor frame); never without fins
+  // (FinOptions::enabled false: the LEDs stay where the boards would stand).
   bool FinBlocks(const Eigen::Vector3d& a, const Eigen::Vector3d& b) const;
 
   const std::vector<Led>& leds() const { return leds_; }
@@ -92,6 +93,7 @@ class Lighting {
   double fin_z0_ = 0.0;  // first table height
   double fin_dz_ = 1.0;  // table step
   std::vector<double> fin_half_width_;
+  bool fins_cast_shadows_ = true;
 };
 
 }  // namespace gs360

@@ -5,7 +5,10 @@
 #include <cmath>
 #include <numbers>
 
+#include <nlohmann/json.hpp>
+
 #include "plan/plan.h"
+#include "rig/rig_config.h"
 
 using namespace gs360;
 using Catch::Matchers::Contains;
@@ -190,6 +193,29 @@ TEST_CASE("Points whose positions leave the machine travel are dropped as travel
   CHECK(Reason(f, CapPoint(), CapNormal()) == DropReason::kTravel);
   // The lower wall is still inside.
   CHECK_FALSE(Reason(f, WallPoint(45, 6), WallNormal(45)));
+}
+
+TEST_CASE("A sensor without fins: no fin mesh, nothing dropped for fins, the config says so",
+          "[plan]") {
+  RigConfig config;
+  config.shape.shape = SensorShape::kSpline;
+  config.fins.enabled = false;
+  const RigGeometry rig = MakeRigGeometry(config);
+  CHECK(rig.fins.Empty());
+  PlanOptions o;
+  o.probe_count = 800;
+  const ProbePlan plan = MakeProbePlan(rig, o);
+  CHECK(plan.dropped[DropReason::kFin] == 0);
+  // The points a fin hid with fins are kept now (the plan with fins drops some: next test).
+  const ProbePlan with_fins = MakeProbePlan(Rig(SensorShape::kSpline), o);
+  CHECK(plan.probes.size() > with_fins.probes.size());
+  // The switch reads and writes with the rest of the rig ([rig.fins] enabled).
+  const RigConfig read =
+      RigConfigFromJson(nlohmann::json{{"fins", {{"enabled", false}}}}, "test.json");
+  CHECK_FALSE(read.fins.enabled);
+  CHECK(RigConfigToJson(config)["fins"]["enabled"] == false);
+  const RigConfig defaults;
+  CHECK(RigConfigFromJson(RigConfigToJson(defaults), "test.json").fins.enabled);
 }
 
 TEST_CASE("A plan counts every candidate once", "[plan]") {

@@ -134,6 +134,16 @@ TEST_CASE("lighting: LED layout, fin shadows and per-channel shading", "[sim][ca
       lighting.Shade(tip, Eigen::Vector3d::UnitZ(), -Eigen::Vector3d::UnitZ());
   CHECK(at_tip[2] > 5.0 * std::max(at_tip[0], at_tip[1]));
 
+  // Without fins the LEDs stand where the boards would, and nothing casts a shadow.
+  FinOptions none = fins;
+  none.enabled = false;
+  const Lighting bare(options, *profile, none);
+  REQUIRE(bare.leds().size() == lighting.leds().size());
+  for (std::size_t i = 0; i < bare.leds().size(); ++i) {
+    CHECK(bare.leds()[i].position.isApprox(lighting.leds()[i].position));
+  }
+  CHECK_FALSE(bare.FinBlocks(Eigen::Vector3d(-3, 2, 10), Eigen::Vector3d(3, 2, 10)));
+
   LightingOptions bad;
   bad.fin_led_heights = {1.5};
   CHECK_THROWS_WITH(bad.Check(), Catch::Contains("fin_led_heights"));
