@@ -90,6 +90,11 @@ void PrintPlan(std::FILE* out, const Json& plan) {
     }
     if (!dropped.empty()) std::fprintf(out, "  dropped:%s\n", dropped.c_str());
   }
+  if (plan.contains("advice") && plan["advice"].is_array()) {
+    for (const Json& line : plan["advice"]) {
+      if (line.is_string()) std::fprintf(out, "  advice: %s\n", line.get<std::string>().c_str());
+    }
+  }
 }
 
 int ExitCodeOfRun(const Json& run) {

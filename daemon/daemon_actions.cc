@@ -64,11 +64,13 @@ Json PlanSummary(const ProbePlan& plan) {
     const auto reason = static_cast<DropReason>(i);
     dropped[std::string(DropReasonName(reason))] = plan.dropped[reason];
   }
-  return {{"probes_total", plan.probes.size()},
-          {"candidates", plan.candidates},
-          {"dropped", dropped},
-          {"estimate_s", plan.estimate.Total()},
-          {"tour_gain", plan.TourGain()}};
+  return {
+      {"probes_total", plan.probes.size()},
+      {"candidates", plan.candidates},
+      {"dropped", dropped},
+      {"advice", PlanAdvice(plan.dropped, static_cast<int>(plan.probes.size()), plan.candidates)},
+      {"estimate_s", plan.estimate.Total()},
+      {"tour_gain", plan.TourGain()}};
 }
 
 }  // namespace

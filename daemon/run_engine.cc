@@ -496,7 +496,17 @@ RunReport RunEngine::Wait() {
 ProbePlan RunEngine::PlanRun(const RunConfig& config, const SafetyLimits* limits) {
   config.Check();
   const RigGeometry rig = MakeRigGeometry(config.rig);
-  ProbePlan plan = MakeProbePlan(rig, config.plan);
+  ProbePlan plan;
+  try {
+    plan = MakeProbePlan(rig, config.plan);
+  } catch (const MeshError&) {
+    throw;
+  } catch (const ConfigError&) {
+    throw;
+  } catch (const std::runtime_error& e) {
+    // Nothing survives the filters: the rig or the plan's settings, not the daemon, are at fault.
+    throw ConfigError(e.what(), "plan");
+  }
   CheckTravel(plan, config.plan.machine, config.plan.travel_limit_margin);
   if (limits != nullptr) {
     const SafetyGuard guard(*limits, std::make_shared<TravelPlanner>(rig, config.plan),

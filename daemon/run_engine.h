@@ -116,8 +116,8 @@ class RunEngine {
 
   // Validates the config and plans; with `limits`, every line of the plan is checked against them
   // (SafetyGuard::CheckPlan). No motion, nothing stored. Throws ConfigError (a limit broken,
-  // naming the probe and the limit) / std::invalid_argument / MeshError / std::runtime_error
-  // (nothing reachable).
+  // naming the probe and the limit; or nothing reachable, with PlanAdvice's sentences) /
+  // std::invalid_argument / MeshError.
   static ProbePlan PlanRun(const RunConfig& config, const SafetyLimits* limits = nullptr);
   // Stores run + plan (probe rows and the full plan as the "plan" artifact). Throws StorageError.
   std::int64_t StoreRun(const RunConfig& config, const ProbePlan& plan);

@@ -87,6 +87,58 @@ std::string_view DropReasonName(DropReason reason) {
   return "unknown";
 }
 
+std::vector<std::string> PlanAdvice(const DropCounts& dropped, int kept, int candidates) {
+  std::vector<std::string> advice;
+  if (candidates <= 0 || 2 * kept >= candidates) return advice;
+  std::vector<DropReason> reasons;
+  for (int r = 0; r < kNumDropReasons; ++r) {
+    const auto reason = static_cast<DropReason>(r);
+    if (10 * dropped[reason] >= candidates) reasons.push_back(reason);
+  }
+  std::stable_sort(reasons.begin(), reasons.end(),
+                   [&](DropReason a, DropReason b) { return dropped[a] > dropped[b]; });
+  for (const DropReason reason : reasons) {
+    std::string what;
+    switch (reason) {
+      case DropReason::kFov:
+        what =
+            "lie outside the camera's field of view: check [rig.camera] (the lens, camera_z) "
+            "and that the sensor ([rig.shape] or its mesh: mm, +z along the finger, base at "
+            "z = 0) is the size and in the place the camera expects";
+        break;
+      case DropReason::kViewAngle:
+        what =
+            "are seen too edge-on from the camera: plan.max_view_angle_rad (75 deg) allows "
+            "more, up to about 85 deg, at some cost in accuracy there";
+        break;
+      case DropReason::kFin:
+        what =
+            "are hidden behind a fin: a sensor without fins needs [rig.fins] enabled = false; "
+            "otherwise check the fins' inset and thickness";
+        break;
+      case DropReason::kGel:
+        what =
+            "are hidden by the sensor's own surface as the camera sees it: check the mesh "
+            "(closed, outward normals, mm) and [rig.camera] camera_z";
+        break;
+      case DropReason::kReach:
+        what =
+            "cannot be pressed: the ball or the stylus would hit the sensor or its base, or "
+            "find no way out: check plan.press_depth, plan.travel_clearance and the stylus "
+            "(plan.stylus_radius, stylus_length)";
+        break;
+      case DropReason::kTravel:
+        what =
+            "lie outside the machine's travel: check where the sensor sits ([rig] "
+            "base_in_machine) and [plan.machine] max_travel_mm";
+        break;
+    }
+    advice.push_back(std::to_string(dropped[reason]) + " of " + std::to_string(candidates) +
+                     " candidates " + what + ".");
+  }
+  return advice;
+}
+
 int DropCounts::Total() const {
   int t = 0;
   for (int c : counts) t += c;
@@ -793,6 +845,7 @@ ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
       os << " " << DropReasonName(static_cast<DropReason>(r)) << " " << plan.dropped.counts[r];
     }
     os << ")";
+    for (const std::string& line : PlanAdvice(plan.dropped, 0, plan.candidates)) os << " " << line;
     throw std::runtime_error(os.str());
   }
 

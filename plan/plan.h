@@ -173,6 +173,12 @@ struct DropCounts {
   int Total() const;
 };
 
+// When a plan keeps little (under half its candidates, or none), what to change for each reason
+// that dropped at least a tenth of them, most frequent first: one sentence each, naming the
+// config key ("[rig.fins] enabled = false", "[plan.machine] max_travel_mm", ...). Empty when the
+// plan keeps at least half. `kept` and `candidates` as in ProbePlan.
+std::vector<std::string> PlanAdvice(const DropCounts& dropped, int kept, int candidates);
+
 struct PlannedProbe {
   int plan_index = 0;    // position in the run order
   int sample_index = 0;  // position in the sampling order of the kept probes

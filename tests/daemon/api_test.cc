@@ -94,6 +94,19 @@ TEST_CASE("api: plan, start, pause and resume a run, and two resumes at once get
   CHECK(plan["probes_total"].get<int>() > 20);
   CHECK(plan["estimate_s"].get<double>() > 0.0);
   CHECK(Body(c.Get("/api/v1/runs"))["runs"].empty());
+  // A plan that keeps little says what to change; one that keeps nothing is a 400 saying it.
+  r = PostJson(c, "/api/v1/runs",
+               {{"probes", 60}, {"plan_only", true}, {"plan", {{"max_view_angle_rad", 0.5}}}});
+  REQUIRE(r->status == 200);
+  REQUIRE_FALSE(Body(r)["advice"].empty());
+  CHECK(Body(r)["advice"][0].get<std::string>().find("max_view_angle_rad") != std::string::npos);
+  CHECK(plan["advice"].empty());
+  r = PostJson(c, "/api/v1/runs", {{"probes", 60}, {"plan", {{"max_view_angle_rad", 0.01}}}});
+  CHECK(r->status == 400);
+  CHECK(Body(r)["error"]["field"] == "plan");
+  CHECK(Body(r)["error"]["message"].get<std::string>().find("max_view_angle_rad") !=
+        std::string::npos);
+  CHECK(Body(c.Get("/api/v1/runs"))["runs"].empty());
 
   r = PostJson(c, "/api/v1/runs", {{"name", "api"}, {"probes", 60}});
   REQUIRE(r->status == 201);

@@ -218,6 +218,30 @@ TEST_CASE("A sensor without fins: no fin mesh, nothing dropped for fins, the con
   CHECK(RigConfigFromJson(RigConfigToJson(defaults), "test.json").fins.enabled);
 }
 
+TEST_CASE("A plan that keeps little says which setting would change that", "[plan]") {
+  DropCounts dropped;
+  dropped[DropReason::kReach] = 300;
+  dropped[DropReason::kFin] = 500;
+  dropped[DropReason::kFov] = 50;  // under a tenth: not worth a line
+  const std::vector<std::string> advice = PlanAdvice(dropped, 150, 1000);
+  REQUIRE(advice.size() == 2);
+  CHECK_THAT(advice[0], Contains("500 of 1000 candidates") && Contains("[rig.fins] enabled"));
+  CHECK_THAT(advice[1], Contains("300 of 1000") && Contains("stylus"));
+  CHECK(PlanAdvice(dropped, 600, 1000).empty());  // keeps more than half: nothing to say
+
+  // Nothing kept: the error says why and what to change.
+  RigConfig far;
+  far.base_in_machine.z() = -400.0;  // below anything the machine reaches
+  PlanOptions o;
+  o.probe_count = 200;
+  try {
+    MakeProbePlan(MakeRigGeometry(far), o);
+    FAIL("a plan with no reachable point was made");
+  } catch (const std::runtime_error& e) {
+    CHECK_THAT(e.what(), Contains("no probe point survives") && Contains("base_in_machine"));
+  }
+}
+
 TEST_CASE("A plan counts every candidate once", "[plan]") {
   PlanOptions o;
   o.probe_count = 800;
