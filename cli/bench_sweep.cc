@@ -4,7 +4,8 @@
 // take (the planner's estimate at [plan.machine]'s feeds), the calibration's time per stage and
 // the validation against the simulator's physical truth. Rows already in the CSV are skipped, so
 // an interrupted sweep resumes; acquisitions are kept in a work folder and resumed too. A plot
-// (PNG) of error against hours with the targets and the Pareto front, and a recommendation.
+// (PNG) of error against hours with the targets and the Pareto front, and a recommendation, over
+// every row of the CSV (a sweep run in parts plots as one).
 
 #include <algorithm>
 #include <chrono>
@@ -358,8 +359,9 @@ int RunSweep(const SweepArgs& a, const CommandContext& ctx) {
         row[8 + 6 + CalibrationStages().size()].c_str(), row[9].c_str(), row[11].c_str(),
         row[8 + 10 + CalibrationStages().size()] == "1" ? "every target met" : "misses a target");
   }
+  // The plot and the advice cover every row of the CSV, this grid's and earlier ones'.
   std::vector<std::vector<std::string>> rows;
-  for (const Config& c : grid) rows.push_back(done[c.Key()]);
+  for (const auto& [key, row] : done) rows.push_back(row);
   WriteSweepPlot(rows, plot);
   const std::string advice = SweepRecommendation(rows);
   if (ctx.json) {

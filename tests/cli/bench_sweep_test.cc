@@ -104,6 +104,10 @@ TEST_CASE("bench sweep writes a row per configuration and resumes without redoin
     RunDatabase db(dir / "new" / "sweep-runs" / "cylinder-p40-s3.db", ro);
     CHECK(db.ListRuns().size() == 1);
   }
+  // A narrower grid runs nothing and still plots and advises on every row of the CSV.
+  r = Gs360("--json " + grid + " --widths 8");
+  REQUIRE(r.status == 0);
+  CHECK(nlohmann::json::parse(r.out.substr(r.out.find("\n{") + 1))["rows"].size() == 3);
   r = Gs360(grid + " --widths 8,16,24 --dry-run");
   CHECK(r.status == 0);
   CHECK_THAT(r.out, Contains("3 in " + csv.string() + " already, 0 to run"));
