@@ -91,7 +91,10 @@ RigGeometry MakeRigGeometry();  // the default rig
 
 struct PlanOptions {
   // Sampling.
-  int probe_count = 10000;  // candidates drawn on the whole surface (> 0)
+  // Candidates drawn on the whole surface (> 0). The default is sized by `gs360 bench sweep`
+  // (docs/benchmarks.md, "Run time against error"): the fewest at which the cylinder and the cone
+  // meet every accuracy target with margin, about an hour of machine time at the default feeds.
+  int probe_count = 2700;
   // If true, probe_count counts KEPT probes: the blue-noise sampler draws candidates only where
   // every filter passes (drop counts then count rejected candidate draws).
   bool count_is_kept = false;
