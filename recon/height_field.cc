@@ -1,7 +1,5 @@
 #include "recon/height_field.h"
 
-#include <Eigen/Sparse>
-#include <Eigen/SparseCholesky>
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -10,6 +8,7 @@
 #include <vector>
 
 #include "base/field_error.h"
+#include "recon/grid_solver.h"
 
 namespace gs360 {
 namespace {
@@ -134,6 +133,13 @@ void Rasterize(const Grid& g, const FisheyeCamera& camera, const cv::Rect& roi,
   for (int y = 0; y + 1 < g.h; ++y) {
     for (int x = 0; x + 1 < g.w; ++x) {
       const int i00 = g.Index(x, y), i10 = i00 + 1, i01 = i00 + g.w, i11 = i01 + 1;
+      // Most cells are about a pixel wide and cover no pixel centre: skip them at once.
+      const double lo_x = std::min({p[i00].x(), p[i10].x(), p[i01].x(), p[i11].x()});
+      const double hi_x = std::max({p[i00].x(), p[i10].x(), p[i01].x(), p[i11].x()});
+      if (std::ceil(lo_x - 1e-9) > std::floor(hi_x + 1e-9)) continue;
+      const double lo_y = std::min({p[i00].y(), p[i10].y(), p[i01].y(), p[i11].y()});
+      const double hi_y = std::max({p[i00].y(), p[i10].y(), p[i01].y(), p[i11].y()});
+      if (std::ceil(lo_y - 1e-9) > std::floor(hi_y + 1e-9)) continue;
       triangle(i00, i10, i11);
       triangle(i00, i11, i01);
     }
@@ -193,7 +199,8 @@ class HeightFieldSolver {
         g_(BuildGrid(map, roi)),
         w_(g_.w),
         hgt_(g_.h),
-        n_(g_.x0.size()) {
+        n_(g_.x0.size()),
+        solver_(w_, hgt_) {
     // Each pixel's observed normal (camera frame), where it has one.
     normal_.assign(n_, Eigen::Vector3d::Zero());
     has_normal_.assign(n_, 0);
@@ -208,20 +215,20 @@ class HeightFieldSolver {
         has_normal_[g_.Index(x, y)] = 1;
       }
     }
-    // Unknowns: interior grid points (the border is h = 0).
-    var_.assign(n_, -1);
+    interior_.assign(n_, 0);
     for (int y = 1; y + 1 < hgt_; ++y)
-      for (int x = 1; x + 1 < w_; ++x) var_[g_.Index(x, y)] = unknowns_++;
+      for (int x = 1; x + 1 < w_; ++x) interior_[g_.Index(x, y)] = 1;
     h_.assign(n_, 0.0);
     if (!initial_height.empty()) {
       for (std::size_t i = 0; i < n_; ++i) {
         const int x = static_cast<int>(i % static_cast<std::size_t>(w_));
         const int y = static_cast<int>(i / static_cast<std::size_t>(w_));
         const double v = initial_height.at<double>(y, x);
-        if (var_[i] >= 0 && std::isfinite(v)) h_[i] = v;
+        if (interior_[i] && std::isfinite(v)) h_[i] = v;
       }
     }
     target_u_.resize(n_), weight_u_.resize(n_), target_v_.resize(n_), weight_v_.resize(n_);
+    edge_u_.assign(n_, 1.0), edge_v_.assign(n_, 1.0), rhs_.resize(n_);
   }
 
   HeightFieldResult Solve() {
@@ -306,41 +313,33 @@ class HeightFieldSolver {
   // Solves the normal equations of sum_e w_e (h_b - h_a - t_e)^2 and moves h there; *change:
   // the largest move. False (h kept) when the factorisation fails.
   bool SolvePass(double* change) {
-    std::vector<Eigen::Triplet<double>> trip;
-    trip.reserve(static_cast<std::size_t>(unknowns_) * 5);
-    Eigen::VectorXd rhs = Eigen::VectorXd::Zero(unknowns_);
-    auto edge = [&](int a, int b, bool along_u) {
-      const double wsum = (along_u ? weight_u_ : weight_v_)[a];
+    std::fill(rhs_.begin(), rhs_.end(), 0.0);
+    auto edge = [&](int a, int b, double wsum, double target, double* weight) {
       double t = 0.0, we = options_.unobserved_weight;
       if (wsum > 1e-9) {
-        t = (along_u ? target_u_ : target_v_)[a] / wsum;
+        t = target / wsum;
         we = std::clamp(wsum, options_.unobserved_weight, 1.0);
       }
-      const int va = var_[a], vb = var_[b];
-      if (va >= 0) trip.emplace_back(va, va, we), rhs[va] -= we * t;
-      if (vb >= 0) trip.emplace_back(vb, vb, we), rhs[vb] += we * t;
-      if (va >= 0 && vb >= 0) trip.emplace_back(va, vb, -we), trip.emplace_back(vb, va, -we);
+      *weight = we;
+      rhs_[a] -= we * t;
+      rhs_[b] += we * t;
     };
     for (int y = 0; y < hgt_; ++y) {
       for (int x = 0; x < w_; ++x) {
         const int i = g_.Index(x, y);
-        if (x + 1 < w_) edge(i, i + 1, true);
-        if (y + 1 < hgt_) edge(i, i + w_, false);
+        if (x + 1 < w_) edge(i, i + 1, weight_u_[i], target_u_[i], &edge_u_[i]);
+        if (y + 1 < hgt_) edge(i, i + w_, weight_v_[i], target_v_[i], &edge_v_[i]);
       }
     }
-    Eigen::SparseMatrix<double> a(unknowns_, unknowns_);
-    a.setFromTriplets(trip.begin(), trip.end());
-    if (!analysed_) solver_.analyzePattern(a), analysed_ = true;
-    solver_.factorize(a);
     // Every unknown has four edges of weight > 0 and the border is fixed: the matrix is
     // positive definite. Should the factorisation still fail, keep the last pass's h.
-    if (solver_.info() != Eigen::Success) return false;
-    const Eigen::VectorXd sol = solver_.solve(rhs);
+    if (!solver_.Factorize(edge_u_, edge_v_)) return false;
+    solver_.Solve(&rhs_);
     *change = 0.0;
     for (std::size_t i = 0; i < n_; ++i) {
-      if (var_[i] < 0) continue;
-      *change = std::max(*change, std::abs(sol[var_[i]] - h_[i]));
-      h_[i] = sol[var_[i]];
+      if (!interior_[i]) continue;
+      *change = std::max(*change, std::abs(rhs_[i] - h_[i]));
+      h_[i] = rhs_[i];
     }
     return true;
   }
@@ -354,15 +353,14 @@ class HeightFieldSolver {
   const std::size_t n_;
   std::vector<Eigen::Vector3d> normal_;  // observed, per grid point
   std::vector<std::uint8_t> has_normal_;
-  std::vector<int> var_;  // unknown index per grid point, -1 on the border
-  int unknowns_ = 0;
+  std::vector<std::uint8_t> interior_;  // the unknowns (the border is h = 0)
   std::vector<double> h_;
   Raster raster_;
   // Per grid edge, indexed by its first node: weighted sum of slope targets and of weights
   // (u: edge i -> i + 1, v: edge i -> i + w).
   std::vector<double> target_u_, weight_u_, target_v_, weight_v_;
-  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> solver_;
-  bool analysed_ = false;
+  std::vector<double> edge_u_, edge_v_, rhs_;  // the pass's edge weights and right-hand side
+  GridLaplacianSolver solver_;
 };
 
 }  // namespace
