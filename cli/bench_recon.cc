@@ -37,6 +37,7 @@ struct BenchReconArgs {
   int mlp_stride = 2;
   int passes = 0;  // 0: the model's height-field passes
   bool poisson = false;
+  std::vector<std::string> scenes;  // empty: all
 };
 
 struct Scene {
@@ -310,6 +311,10 @@ int RunBenchRecon(const BenchReconArgs& a, const CommandContext& ctx) {
                 "peak mm");
   }
   for (const Scene& scene : MakeScenes(*rig, camera)) {
+    if (!a.scenes.empty() &&
+        std::find(a.scenes.begin(), a.scenes.end(), scene.name) == a.scenes.end()) {
+      continue;
+    }
     rows.push_back(MeasureScene(recon, full, scene, a.seconds, rig->ball_radius()));
     if (!ctx.json) PrintRow(rows.back());
   }
@@ -348,6 +353,10 @@ void RegisterReconBench(CLI::App& bench, CommandContext& ctx) {
                   "The fast path's height-field passes at most (0: the model's)")
       ->check(CLI::Range(0, 100));
   cmd->add_flag("--poisson", a.poisson, "The fast path integrates by plain Poisson");
+  cmd->add_option("--scenes", a.scenes, "Only these scenes (comma-separated names)")
+      ->delimiter(',')
+      ->check(
+          CLI::IsMember({"no contact", "side", "tip", "across a fin", "three contacts", "dense"}));
   cmd->callback([&ctx] { ctx.exit_code = RunBenchRecon(a, ctx); });
 }
 

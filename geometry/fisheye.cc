@@ -129,7 +129,9 @@ std::optional<Eigen::Vector3d> FisheyeCamera::PixelToRay(const Eigen::Vector2d& 
 }
 
 Eigen::Vector2d FisheyeCamera::ProjectUnchecked(const Eigen::Vector3d& x_cam) const {
-  const double r = std::hypot(x_cam.x(), x_cam.y());
+  // Not std::hypot: its care for overflow costs a third of this function, and points in mm do
+  // not come near it.
+  const double r = std::sqrt(x_cam.x() * x_cam.x() + x_cam.y() * x_cam.y());
   const double theta = std::atan2(r, x_cam.z());
   const double theta_d = ThetaToThetaD(theta);
   double xd = 0.0, yd = 0.0;

@@ -216,6 +216,11 @@ Reconstructor::Reconstructor(std::shared_ptr<const SurfaceMap> map, const Fishey
 
 std::optional<cv::Rect> Reconstructor::ScreenWindow(const cv::Mat& frame,
                                                     const cv::Mat& reference) const {
+  return Screen(frame, reference, nullptr);
+}
+
+std::optional<cv::Rect> Reconstructor::Screen(const cv::Mat& frame, const cv::Mat& reference,
+                                              cv::Vec3d* gain) const {
   // Half size, 2x2 means: a quarter of the pixels with half the noise. Unsmoothed and against
   // half the detection threshold, so that whatever the full path would find is seen here.
   cv::Mat small_frame, small_reference;
@@ -230,7 +235,10 @@ std::optional<cv::Rect> Reconstructor::ScreenWindow(const cv::Mat& frame,
   DifferenceOptions coarse = options_.difference;
   coarse.smooth_sigma_px = 0.5 * options_.difference.smooth_sigma_px;
   coarse.gain_stride = std::max(1, coarse.gain_stride / 2);
-  const cv::Mat diff = NormalizedDifference(small_frame, small_reference, coarse_visible_, coarse);
+  // Its gain is the frame's: the same pixels' ratios, 2x2 means of them (a median of as many
+  // samples as the full path takes), so the full path need not estimate it again.
+  const cv::Mat diff =
+      NormalizedDifference(small_frame, small_reference, coarse_visible_, coarse, gain);
   cv::Mat magnitude(diff.size(), CV_32F);
   for (int y = 0; y < diff.rows; ++y) {
     const cv::Vec3f* in = diff.ptr<cv::Vec3f>(y);
@@ -265,8 +273,10 @@ DetectedContacts Reconstructor::Detect(const cv::Mat& frame, const cv::Mat& refe
   DetectedContacts out;
   const cv::Rect image(0, 0, frame.cols, frame.rows);
   out.window = image;
+  bool has_gain = false;
   if (options_.screen) {
-    const auto window = ScreenWindow(frame, reference);
+    const auto window = Screen(frame, reference, &out.gain);
+    has_gain = true;
     if (!window) {
       out.window = cv::Rect();
       return out;
@@ -276,8 +286,8 @@ DetectedContacts Reconstructor::Detect(const cv::Mat& frame, const cv::Mat& refe
   if (out.window == image) {
     out.difference = Difference(frame, reference, &out.gain);
   } else {
-    // The gain from the whole image, as the full path estimates it; the difference in the window.
-    out.gain = EstimateGain(frame, reference, visible_, options_.difference);
+    // The gain from the whole image (the screen's); the difference in the window.
+    if (!has_gain) out.gain = EstimateGain(frame, reference, visible_, options_.difference);
     out.difference = cv::Mat(frame.size(), CV_32FC3, cv::Scalar::all(0));
     const cv::Rect& w = out.window;
     NormalizedDifference(frame(w), reference(w), visible_(w), options_.difference, nullptr,

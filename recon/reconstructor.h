@@ -141,6 +141,9 @@ class Reconstructor {
                                           double min_indentation_mm = 0.02) const;
 
  private:
+  // ScreenWindow, and the LED drift gain it estimated on the way (when `gain` is not null).
+  std::optional<cv::Rect> Screen(const cv::Mat& frame, const cv::Mat& reference,
+                                 cv::Vec3d* gain) const;
   // The MLP's slopes for `pixels` (inside roi), written into *slopes (roi-sized CV_32FC2).
   void EvaluateSlopes(const cv::Mat& diff, const cv::Mat& context, const cv::Rect& roi,
                       const std::vector<cv::Point>& pixels, cv::Mat* slopes) const;
