@@ -86,7 +86,7 @@ Eigen::Vector2d FourierByHand(const Mlp& mlp, const Eigen::Vector3d& x) {
   Eigen::Vector3d a;
   for (int i = 0; i < 3; ++i) a[i] = (x[i] - mlp.input_mean()[i]) / mlp.input_scale()[i];
   Eigen::VectorXd a0(3 + 12);
-  a0.head(3) = a;
+  a0.head<3>() = a;  // fixed size: GCC 12 with AVX warns (falsely) on head(3)
   for (int i = 0; i < 2; ++i) {
     for (int j = 0; j < 3; ++j) {
       const double phase = 0.7 * std::pow(2.0, j) * a[i];
