@@ -1,9 +1,17 @@
 #include "base/byte_io.h"
 
+#include <algorithm>
 #include <cstring>
+#include <iterator>
 #include <stdexcept>
 
 namespace gs360 {
+
+bool HasPngSignature(std::span<const std::uint8_t> bytes) {
+  static constexpr std::uint8_t kSignature[8] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
+  return bytes.size() >= sizeof(kSignature) &&
+         std::equal(std::begin(kSignature), std::end(kSignature), bytes.begin());
+}
 
 void ByteWriter::Bytes(const void* data, std::size_t n) {
   if (n == 0) return;

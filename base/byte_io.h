@@ -13,6 +13,11 @@
 
 namespace gs360 {
 
+// True when `bytes` start with the 8-byte PNG signature. Callers that expect a PNG check this
+// before OpenCV's decoder, which otherwise tries every format it knows (its DICOM reader aborts
+// the process on some malformed input: found by tests/fuzz).
+bool HasPngSignature(std::span<const std::uint8_t> bytes);
+
 class ByteWriter {
  public:
   explicit ByteWriter(std::size_t reserve = 0) { bytes_.reserve(reserve); }

@@ -93,7 +93,15 @@ std::vector<int> WeldMap(const std::vector<Eigen::Vector3d>& v, double tol) {
     }
     return rep;
   }
-  auto cell_of = [tol](double x) { return static_cast<std::int64_t>(std::floor(x / tol)); };
+  // Cells beyond +-2^62 share the last one (casting a larger value is undefined: found by
+  // tests/fuzz with coordinates of 1e32); the distance test below keeps the weld exact, only the
+  // hashing is coarser there. A non-finite coordinate (lenient loading) goes to cell 0.
+  auto cell_of = [tol](double x) {
+    constexpr double kLast = 4.611686018427387904e18;  // 2^62
+    const double cell = std::floor(x / tol);
+    return std::isfinite(cell) ? static_cast<std::int64_t>(std::clamp(cell, -kLast, kLast))
+                               : std::int64_t{0};
+  };
   auto key_of = [](std::int64_t x, std::int64_t y, std::int64_t z) {
     std::uint64_t h = static_cast<std::uint64_t>(x) * 0x9E3779B97F4A7C15ull;
     h ^= static_cast<std::uint64_t>(y) * 0xC2B2AE3D27D4EB4Full + (h << 6) + (h >> 2);
@@ -705,6 +713,53 @@ void MeshLoadOptions::Check() const {
   repair.Check();
 }
 
+namespace {
+
+// A PLY file's header, checked before assimp reads it: assimp 5.2 loops without end on some
+// malformed PLY headers (found by tests/fuzz), and takes an element count at its word. Every line
+// up to end_header must be one PLY defines, and no element may claim more entries than the file
+// has bytes. Files not starting with "ply" are left to assimp.
+void CheckPlyHeader(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  std::string line;
+  if (!std::getline(in, line) || (line != "ply" && line != "ply\r")) return;
+  std::error_code ec;
+  const auto size = std::filesystem::file_size(path, ec);
+  auto bad = [&](int number, const std::string& why) {
+    throw MeshError("malformed PLY header in " + Quoted(path) + ", line " + std::to_string(number) +
+                    ": " + why);
+  };
+  for (int number = 2; number <= 10000 && std::getline(in, line); ++number) {
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    std::istringstream words(line);
+    std::string keyword;
+    words >> keyword;
+    if (keyword == "end_header") return;
+    if (keyword == "comment" || keyword == "obj_info") continue;
+    if (keyword == "format") {
+      std::string kind, version;
+      words >> kind >> version;
+      if ((kind != "ascii" && kind != "binary_little_endian" && kind != "binary_big_endian") ||
+          version != "1.0") {
+        bad(number, "unknown format \"" + line + "\"");
+      }
+    } else if (keyword == "element") {
+      std::string name;
+      long long count = -1;
+      if (!(words >> name >> count) || count < 0) bad(number, "\"" + line + "\"");
+      if (!ec && static_cast<unsigned long long>(count) > size) {
+        bad(number, "element " + name + " claims " + std::to_string(count) +
+                        " entries in a file of " + std::to_string(size) + " bytes");
+      }
+    } else if (keyword != "property") {
+      bad(number, "unknown keyword \"" + keyword + "\"");
+    }
+  }
+  throw MeshError("malformed PLY header in " + Quoted(path) + ": no end_header");
+}
+
+}  // namespace
+
 TriangleMesh LoadMesh(const std::filesystem::path& path, const MeshLoadOptions& options,
                       MeshReport* report) {
   options.Check();
@@ -720,13 +775,15 @@ TriangleMesh LoadMesh(const std::filesystem::path& path, const MeshLoadOptions& 
       throw MeshError("mesh file is empty: " + Quoted(path));
   }
 
+  CheckPlyHeader(path);
   Assimp::Importer importer;
-  // Keep only triangles: drop points and lines after triangulating polygons.
+  // Keep only faces: drop points and lines. Polygons are split here, as fans, not by assimp's
+  // triangulation step, whose assertion aborts the process on some malformed faces (Debian's
+  // assimp 5.2 keeps its asserts; found by tests/fuzz).
   importer.SetPropertyInteger(AI_CONFIG_PP_SBP_REMOVE,
                               aiPrimitiveType_POINT | aiPrimitiveType_LINE);
   const aiScene* scene =
-      importer.ReadFile(path.string(), aiProcess_Triangulate | aiProcess_PreTransformVertices |
-                                           aiProcess_SortByPType);
+      importer.ReadFile(path.string(), aiProcess_PreTransformVertices | aiProcess_SortByPType);
   if (scene == nullptr) {
     throw MeshError("cannot parse mesh file " + Quoted(path) + ": " + importer.GetErrorString());
   }
@@ -734,7 +791,7 @@ TriangleMesh LoadMesh(const std::filesystem::path& path, const MeshLoadOptions& 
   TriangleMesh mesh;
   for (unsigned m = 0; m < scene->mNumMeshes; ++m) {
     const aiMesh* am = scene->mMeshes[m];
-    if (!(am->mPrimitiveTypes & aiPrimitiveType_TRIANGLE)) continue;
+    if (!(am->mPrimitiveTypes & (aiPrimitiveType_TRIANGLE | aiPrimitiveType_POLYGON))) continue;
     const int offset = mesh.NumVertices();
     for (unsigned i = 0; i < am->mNumVertices; ++i) {
       const aiVector3D& v = am->mVertices[i];
@@ -742,10 +799,18 @@ TriangleMesh LoadMesh(const std::filesystem::path& path, const MeshLoadOptions& 
     }
     for (unsigned f = 0; f < am->mNumFaces; ++f) {
       const aiFace& face = am->mFaces[f];
-      if (face.mNumIndices != 3) continue;
-      mesh.triangles.emplace_back(offset + static_cast<int>(face.mIndices[0]),
-                                  offset + static_cast<int>(face.mIndices[1]),
-                                  offset + static_cast<int>(face.mIndices[2]));
+      for (unsigned k = 0; k < face.mNumIndices; ++k) {
+        if (face.mIndices[k] >= am->mNumVertices) {
+          throw MeshError("mesh file " + Quoted(path) + ": face " + std::to_string(f) +
+                          " uses vertex " + std::to_string(face.mIndices[k]) + " of " +
+                          std::to_string(am->mNumVertices));
+        }
+      }
+      for (unsigned k = 2; k < face.mNumIndices; ++k) {
+        mesh.triangles.emplace_back(offset + static_cast<int>(face.mIndices[0]),
+                                    offset + static_cast<int>(face.mIndices[k - 1]),
+                                    offset + static_cast<int>(face.mIndices[k]));
+      }
     }
   }
   if (mesh.triangles.empty()) throw MeshError("mesh file " + Quoted(path) + " has no triangles");

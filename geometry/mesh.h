@@ -149,12 +149,13 @@ struct MeshLoadOptions {
 };
 
 // Loads a mesh through assimp (STL ASCII/binary, OBJ, PLY; other assimp formats work too). All
-// meshes of the file are merged with their node transforms; non-triangle primitives are dropped
-// (polygons are triangulated). Vertex normals are computed from the geometry (file normals are
-// ignored: STL's are per face). Coordinates pass through float32 (assimp's ai_real): ~2e-6 mm
-// at 30 mm. Throws MeshError naming the file for: missing or unreadable file,
-// an assimp parse error, no triangles, NaN/Inf vertices (with counts, if reject_nonfinite), an
-// open mesh (if reject_open). `report` (optional) receives the validation report.
+// meshes of the file are merged with their node transforms; points and lines are dropped, polygons
+// split into triangle fans (right for convex faces). Vertex normals are computed from the
+// geometry (file normals are ignored: STL's are per face). Coordinates pass through float32
+// (assimp's ai_real): ~2e-6 mm at 30 mm. Throws MeshError naming the file for: missing or
+// unreadable file, an assimp parse error, no triangles, NaN/Inf vertices (with counts, if
+// reject_nonfinite), an open mesh (if reject_open). `report` (optional) receives the validation
+// report.
 TriangleMesh LoadMesh(const std::filesystem::path& path, const MeshLoadOptions& options = {},
                       MeshReport* report = nullptr);
 

@@ -8,6 +8,7 @@
 
 #include <opencv2/imgcodecs.hpp>
 
+#include "base/byte_io.h"
 #include "base/hash.h"
 #include "geometry/bvh.h"
 
@@ -287,9 +288,16 @@ ModelBundle DeserializeModelBundle(std::span<const std::uint8_t> bytes, const st
   if (b.gel_mesh.Empty()) throw ModelBundleError(where + ": the gel mesh is empty");
   b.fin_mesh = MeshFromBytes(chunk("fin_mesh"), where, "fin_mesh");
   const auto png = chunk("reference.png");
-  b.reference = cv::imdecode(
-      cv::Mat(1, static_cast<int>(png.size()), CV_8U, const_cast<std::uint8_t*>(png.data())),
-      cv::IMREAD_COLOR);
+  // Only a PNG goes to OpenCV's decoder, and a broken one is the error below, not an exception.
+  if (HasPngSignature(png)) {
+    try {
+      b.reference = cv::imdecode(
+          cv::Mat(1, static_cast<int>(png.size()), CV_8U, const_cast<std::uint8_t*>(png.data())),
+          cv::IMREAD_COLOR);
+    } catch (const cv::Exception&) {
+      b.reference.release();
+    }
+  }
   if (b.reference.empty() || b.reference.cols != b.intrinsics.width ||
       b.reference.rows != b.intrinsics.height) {
     throw ModelBundleError(where + ": the reference frame does not decode to a " +

@@ -3,11 +3,12 @@
 # Release, then does what was asked:
 #   scripts/setup.sh test    build and run the whole test suite through CTest, then the
 #                            ASan+UBSan and TSan builds on their selections (scripts/sanitize.sh)
+#                            and a bounded run of each libFuzzer target (scripts/fuzz.sh)
 #   scripts/setup.sh demo    build and run `gs360 demo` (the simulated rig, end to end)
 #   scripts/setup.sh build   install and build only
 # Idempotent: a second run installs nothing and rebuilds only what changed.
 # Environment: BUILD_DIR (default build), JOBS (default nproc), GS360_SKIP_APT=1 to skip apt,
-# GS360_SANITIZERS=0 to skip the sanitizer builds in test mode.
+# GS360_SANITIZERS=0 to skip the sanitizer builds in test mode, GS360_FUZZ=0 the fuzz targets.
 set -euo pipefail
 
 mode=${1:-build}
@@ -32,10 +33,11 @@ packages=(
   pybind11-dev python3-dev python3-numpy
   curl
 )
-# Only the test mode needs these: the headless browser for the dashboard's test (tests/browser)
-# and clang-format for the format check (tests/CMakeLists.txt).
+# Only the test mode needs these: the headless browser for the dashboard's test (tests/browser),
+# clang-format for the format check (tests/CMakeLists.txt) and clang with its runtime libraries
+# (libFuzzer, the sanitizers: only recommended by clang) for tests/fuzz.
 if [ "$mode" = test ]; then
-  packages+=(chromium clang-format)
+  packages+=(chromium clang-format clang libclang-rt-14-dev)
 fi
 
 missing=()
@@ -63,6 +65,10 @@ case "$mode" in
     # Then the sanitizer builds and their selections of the tests (scripts/sanitize.sh).
     if [ "${GS360_SANITIZERS:-1}" != 0 ]; then
       "$here/scripts/sanitize.sh"
+    fi
+    # And each fuzz target on its seed corpus for a bounded time (scripts/fuzz.sh).
+    if [ "${GS360_FUZZ:-1}" != 0 ]; then
+      "$here/scripts/fuzz.sh"
     fi
     ;;
   demo)

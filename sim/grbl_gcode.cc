@@ -1,5 +1,6 @@
 #include "sim/grbl_gcode.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <sstream>
@@ -172,11 +173,20 @@ int LineParser::ImportWords(std::string_view line, std::size_t pos) {
     ++pos;
     double value = 0.0;
     if (!ReadGrblFloat(line, pos, value)) return kGrblBadNumberFormat;
-    // GRBL: uint8_t int_value = trunc(value); uint16_t mantissa = round(100*(value - int_value)).
+    // GRBL: uint8_t int_value = trunc(value); uint16_t mantissa = round(100*(value - int_value)),
+    // both keeping the low bits. A value past a long's range cannot be cast (undefined, found by
+    // tests/fuzz): such doubles are multiples of 2^11, whose low byte is 0 anyway.
+    constexpr double kLongRange = 9.0e18;
+    const double whole = std::trunc(value);
     const int int_value =
-        static_cast<int>(static_cast<std::uint8_t>(static_cast<long>(std::trunc(value)) & 0xFF));
-    const int mantissa = static_cast<int>(static_cast<std::uint16_t>(
-        static_cast<long>(std::lround(100.0 * (value - int_value))) & 0xFFFF));
+        std::abs(whole) < kLongRange
+            ? static_cast<int>(static_cast<std::uint8_t>(static_cast<long>(whole) & 0xFF))
+            : 0;
+    const double hundredths = std::round(100.0 * (value - int_value));
+    const int mantissa =
+        std::abs(hundredths) < kLongRange
+            ? static_cast<int>(static_cast<std::uint16_t>(static_cast<long>(hundredths) & 0xFFFF))
+            : 0;
     int status;
     switch (letter) {
       case 'G':
@@ -530,8 +540,9 @@ int LineParser::CheckNonModal() {
 int LineParser::SetCoordinateData() {
   if (!axis_words_) return kGrblGcodeNoAxisWords;
   if (!(value_words_ & (kWordP | kWordL))) return kGrblGcodeValueWordMissing;
+  // Compared as a double first: a P past int's range cannot be cast (found by tests/fuzz).
+  if (!(std::trunc(v_.p) <= kNCoordinateSystem)) return kGrblGcodeUnsupportedCoordSys;
   int coord_select = static_cast<int>(std::trunc(v_.p));
-  if (coord_select > kNCoordinateSystem) return kGrblGcodeUnsupportedCoordSys;
   if (v_.l != 20) {
     if (v_.l == 2) {
       if (value_words_ & kWordR) return kGrblGcodeUnsupportedCommand;
@@ -755,8 +766,11 @@ std::vector<Eigen::Vector3d> ArcSegmentTargets(const Eigen::Vector3d& position_i
     if (angular_travel <= kArcAngularTravelEpsilon) angular_travel += 2 * M_PI;
   }
   const double chord = std::sqrt(arc_tolerance_mm * (2 * radius - arc_tolerance_mm));
-  const int segments =
-      chord > 0 ? static_cast<int>(std::floor(std::abs(0.5 * angular_travel * radius) / chord)) : 0;
+  // GRBL counts segments in a uint16_t; more than that many from an absurd radius would be an
+  // undefined cast here, and a useless allocation.
+  constexpr double kMaxSegments = 65535.0;
+  const double count = chord > 0 ? std::floor(std::abs(0.5 * angular_travel * radius) / chord) : 0;
+  const int segments = static_cast<int>(std::min(count, kMaxSegments));
   std::vector<Eigen::Vector3d> out;
   if (segments > 0) {
     const double theta_per_segment = angular_travel / segments;

@@ -5,6 +5,7 @@
 
 #include <opencv2/imgcodecs.hpp>
 
+#include "base/byte_io.h"
 #include "base/hash.h"
 
 namespace gs360 {
@@ -73,7 +74,7 @@ EncodedFrame EncodeFrame(const cv::Mat& image, const PngOptions& options) {
 }
 
 cv::Mat DecodeFrame(std::span<const std::uint8_t> png) {
-  if (png.empty()) return {};
+  if (!HasPngSignature(png)) return {};
   // imdecode needs a Mat header over the bytes; it does not modify them.
   const cv::Mat buf(1, static_cast<int>(png.size()), CV_8UC1,
                     const_cast<std::uint8_t*>(png.data()));

@@ -178,6 +178,16 @@ TEST_CASE("LoadMesh errors name the file and the problem", "[mesh]") {
                     Catch::Contains("empty") && Catch::Contains("empty.stl"));
   WriteText(dir / "garbage.ply", "ply\nthis is not a ply file\n");
   CHECK_THROWS_AS(LoadMesh(dir / "garbage.ply"), MeshError);
+  // Found by tests/fuzz (mesh): assimp never returned on this header; it is refused before.
+  WriteText(dir / "loops.ply",
+            "ply\nformat ascii 1.00solid t\nf\ne\377\377\377lement vertex 4\npropa\377\377e");
+  CHECK_THROWS_WITH(LoadMesh(dir / "loops.ply"), Catch::Contains("malformed PLY header") &&
+                                                     Catch::Contains("loops.ply") &&
+                                                     Catch::Contains("line 2"));
+  WriteText(dir / "huge.ply",
+            "ply\nformat binary_little_endian 1.0\nelement vertex 4000000000\nproperty float x\n"
+            "end_header\n");
+  CHECK_THROWS_WITH(LoadMesh(dir / "huge.ply"), Catch::Contains("claims 4000000000 entries"));
   WriteText(dir / "points.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\n");
   CHECK_THROWS_AS(LoadMesh(dir / "points.obj"), MeshError);
 
@@ -263,6 +273,16 @@ TEST_CASE("ValidateAndRepair makes the winding consistent and outward", "[mesh]"
     CHECK(r.boundary_edges == 24);
     CHECK(r.boundary_edges_on_base == 24);
   }
+}
+
+// Found by tests/fuzz (mesh): welding hashed each coordinate's cell through a cast that is
+// undefined past 2^63 cells. A far vertex (1e32 mm) is welded to its twin and nothing else.
+TEST_CASE("ValidateAndRepair welds vertices at any distance", "[mesh]") {
+  TriangleMesh m;
+  m.vertices = {{0, 0, 0}, {1e32, 0, 0}, {0, -2.5e32, 0}, {1e32, 0, 0}, {0, 0, 1}};
+  m.triangles = {{0, 1, 2}, {0, 3, 4}};
+  const MeshReport r = ValidateAndRepair(m);
+  CHECK(r.welded_vertices == 1);
 }
 
 TEST_CASE("ValidateAndRepair counts and removes duplicates, degenerates, NaN and welds", "[mesh]") {

@@ -120,6 +120,18 @@ TEST_CASE("Parser returns GRBL's error codes", "[grbl_gcode]") {
   CHECK(Parse("G21G90G94G17G54M5M9T0S0") == kGrblOk);
 }
 
+// Found by tests/fuzz (gcode_line): a command number past a long's range was cast to long, which
+// is undefined (UBSan stopped there). GRBL keeps the low byte of the number, which for doubles
+// that large is 0: the line reads as G0 and M0.
+TEST_CASE("Parser takes command numbers past a long's range", "[grbl_gcode]") {
+  using namespace gs360;
+  CHECK(Parse("G4444444444444444444499") == kGrblOk);
+  CHECK(Parse("G-4444444444444444444499") == kGrblOk);
+  CHECK(Parse("M1" + std::string(40, '9')) == kGrblOk);
+  CHECK(Parse("X1" + std::string(30, '7')) == kGrblOk);  // an axis value may be that large
+  CHECK(Parse("P3" + std::string(95, '3') + "G10L2Y0") == kGrblGcodeUnsupportedCoordSys);
+}
+
 TEST_CASE("Parser state line and arcs", "[grbl_gcode]") {
   GcodeState gc;
   CHECK(gs360::FormatParserState(gc, false) == "[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]");

@@ -1,6 +1,7 @@
 #include <catch2/catch.hpp>
 
 #include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
 
 #include "storage/frame_codec.h"
 #include "tests/storage/storage_test_util.h"
@@ -68,6 +69,11 @@ TEST_CASE("DecodeFrame returns an empty image for bytes that are not a PNG", "[s
   EncodedFrame encoded = EncodeFrame(test::NoisyFrame(1, 64, 48));
   encoded.png.resize(encoded.png.size() / 2);
   CHECK(DecodeFrame(encoded.png).empty());
+  // Nor does another image format: only PNG bytes reach OpenCV's decoder, whose DICOM reader
+  // aborted the process on a fuzzed input (tests/fuzz/corpus/frame).
+  std::vector<std::uint8_t> bmp;
+  REQUIRE(cv::imencode(".bmp", test::NoisyFrame(3, 16, 12), bmp));
+  CHECK(DecodeFrame(bmp).empty());
 }
 
 TEST_CASE("BlobChecksum detects a single flipped bit", "[storage][codec]") {
