@@ -26,7 +26,7 @@ namespace gs360 {
 class GridLaplacianSolver {
  public:
   // w, h >= 3. Throws std::invalid_argument otherwise. Builds the elimination tree and sizes
-  // every buffer: Factorize and Solve allocate nothing.
+  // the solver's own buffers once (Eigen's dense kernels may still take scratch per call).
   GridLaplacianSolver(int w, int h);
   ~GridLaplacianSolver();
   GridLaplacianSolver(const GridLaplacianSolver&) = delete;
@@ -37,11 +37,13 @@ class GridLaplacianSolver {
 
   // weight_u, weight_v: w * h entries (entries of edges that do not exist, past the last column
   // or row, are ignored). Returns false when the matrix is not numerically positive definite (a
-  // weight <= 0 or not finite); the solver then holds no factorisation.
+  // weight <= 0 or not finite); the solver then holds no factorisation. Throws
+  // std::invalid_argument for fewer than w * h entries.
   bool Factorize(const std::vector<double>& weight_u, const std::vector<double>& weight_v);
 
   // In: x holds the right-hand side at each interior node (w * h entries; the border's are
-  // ignored). Out: the solution there, 0 on the border. Requires a successful Factorize.
+  // ignored). Out: the solution there, 0 on the border. Throws std::logic_error without a
+  // successful Factorize, std::invalid_argument for fewer than w * h entries.
   void Solve(std::vector<double>* x) const;
 
  private:
