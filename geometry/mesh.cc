@@ -758,6 +758,37 @@ void CheckPlyHeader(const std::filesystem::path& path) {
   throw MeshError("malformed PLY header in " + Quoted(path) + ": no end_header");
 }
 
+// Every face mesh of an assimp scene in one TriangleMesh; polygons become fans. Throws MeshError
+// for a face index past its mesh's vertices.
+TriangleMesh MeshFromScene(const aiScene& scene, const std::filesystem::path& path) {
+  TriangleMesh mesh;
+  for (unsigned m = 0; m < scene.mNumMeshes; ++m) {
+    const aiMesh* am = scene.mMeshes[m];
+    if (!(am->mPrimitiveTypes & (aiPrimitiveType_TRIANGLE | aiPrimitiveType_POLYGON))) continue;
+    const int offset = mesh.NumVertices();
+    for (unsigned i = 0; i < am->mNumVertices; ++i) {
+      const aiVector3D& v = am->mVertices[i];
+      mesh.vertices.emplace_back(v.x, v.y, v.z);
+    }
+    for (unsigned f = 0; f < am->mNumFaces; ++f) {
+      const aiFace& face = am->mFaces[f];
+      for (unsigned k = 0; k < face.mNumIndices; ++k) {
+        if (face.mIndices[k] >= am->mNumVertices) {
+          throw MeshError("mesh file " + Quoted(path) + ": face " + std::to_string(f) +
+                          " uses vertex " + std::to_string(face.mIndices[k]) + " of " +
+                          std::to_string(am->mNumVertices));
+        }
+      }
+      for (unsigned k = 2; k < face.mNumIndices; ++k) {
+        mesh.triangles.emplace_back(offset + static_cast<int>(face.mIndices[0]),
+                                    offset + static_cast<int>(face.mIndices[k - 1]),
+                                    offset + static_cast<int>(face.mIndices[k]));
+      }
+    }
+  }
+  return mesh;
+}
+
 }  // namespace
 
 TriangleMesh LoadMesh(const std::filesystem::path& path, const MeshLoadOptions& options,
@@ -788,31 +819,7 @@ TriangleMesh LoadMesh(const std::filesystem::path& path, const MeshLoadOptions& 
     throw MeshError("cannot parse mesh file " + Quoted(path) + ": " + importer.GetErrorString());
   }
 
-  TriangleMesh mesh;
-  for (unsigned m = 0; m < scene->mNumMeshes; ++m) {
-    const aiMesh* am = scene->mMeshes[m];
-    if (!(am->mPrimitiveTypes & (aiPrimitiveType_TRIANGLE | aiPrimitiveType_POLYGON))) continue;
-    const int offset = mesh.NumVertices();
-    for (unsigned i = 0; i < am->mNumVertices; ++i) {
-      const aiVector3D& v = am->mVertices[i];
-      mesh.vertices.emplace_back(v.x, v.y, v.z);
-    }
-    for (unsigned f = 0; f < am->mNumFaces; ++f) {
-      const aiFace& face = am->mFaces[f];
-      for (unsigned k = 0; k < face.mNumIndices; ++k) {
-        if (face.mIndices[k] >= am->mNumVertices) {
-          throw MeshError("mesh file " + Quoted(path) + ": face " + std::to_string(f) +
-                          " uses vertex " + std::to_string(face.mIndices[k]) + " of " +
-                          std::to_string(am->mNumVertices));
-        }
-      }
-      for (unsigned k = 2; k < face.mNumIndices; ++k) {
-        mesh.triangles.emplace_back(offset + static_cast<int>(face.mIndices[0]),
-                                    offset + static_cast<int>(face.mIndices[k - 1]),
-                                    offset + static_cast<int>(face.mIndices[k]));
-      }
-    }
-  }
+  TriangleMesh mesh = MeshFromScene(*scene, path);
   if (mesh.triangles.empty()) throw MeshError("mesh file " + Quoted(path) + " has no triangles");
 
   int nonfinite = 0;

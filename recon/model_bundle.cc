@@ -218,6 +218,32 @@ std::vector<std::uint8_t> SerializeModelBundle(const ModelBundle& b) {
   return std::move(w.bytes());
 }
 
+namespace {
+
+// The bundle's reference frame: a colour PNG of the intrinsics' size, else ModelBundleError.
+// Only a PNG goes to OpenCV's decoder, and a broken one is that error, not a cv::Exception.
+cv::Mat DecodeReference(std::span<const std::uint8_t> png, const FisheyeIntrinsics& intrinsics,
+                        const std::string& where) {
+  cv::Mat image;
+  if (HasPngSignature(png)) {
+    try {
+      image = cv::imdecode(
+          cv::Mat(1, static_cast<int>(png.size()), CV_8U, const_cast<std::uint8_t*>(png.data())),
+          cv::IMREAD_COLOR);
+    } catch (const cv::Exception&) {
+      image.release();
+    }
+  }
+  if (image.empty() || image.cols != intrinsics.width || image.rows != intrinsics.height) {
+    throw ModelBundleError(where + ": the reference frame does not decode to a " +
+                           std::to_string(intrinsics.width) + "x" +
+                           std::to_string(intrinsics.height) + " colour image");
+  }
+  return image;
+}
+
+}  // namespace
+
 ModelBundle DeserializeModelBundle(std::span<const std::uint8_t> bytes, const std::string& where) {
   if (bytes.size() < sizeof(kMagic) + 8 + 16 ||
       std::memcmp(bytes.data(), kMagic, sizeof(kMagic)) != 0) {
@@ -287,23 +313,7 @@ ModelBundle DeserializeModelBundle(std::span<const std::uint8_t> bytes, const st
   b.gel_mesh = MeshFromBytes(chunk("gel_mesh"), where, "gel_mesh");
   if (b.gel_mesh.Empty()) throw ModelBundleError(where + ": the gel mesh is empty");
   b.fin_mesh = MeshFromBytes(chunk("fin_mesh"), where, "fin_mesh");
-  const auto png = chunk("reference.png");
-  // Only a PNG goes to OpenCV's decoder, and a broken one is the error below, not an exception.
-  if (HasPngSignature(png)) {
-    try {
-      b.reference = cv::imdecode(
-          cv::Mat(1, static_cast<int>(png.size()), CV_8U, const_cast<std::uint8_t*>(png.data())),
-          cv::IMREAD_COLOR);
-    } catch (const cv::Exception&) {
-      b.reference.release();
-    }
-  }
-  if (b.reference.empty() || b.reference.cols != b.intrinsics.width ||
-      b.reference.rows != b.intrinsics.height) {
-    throw ModelBundleError(where + ": the reference frame does not decode to a " +
-                           std::to_string(b.intrinsics.width) + "x" +
-                           std::to_string(b.intrinsics.height) + " colour image");
-  }
+  b.reference = DecodeReference(chunk("reference.png"), b.intrinsics, where);
   try {
     b.mlp = Mlp::Deserialize(chunk("mlp"));
   } catch (const ModelBundleError&) {

@@ -273,10 +273,8 @@ DetectedContacts Reconstructor::Detect(const cv::Mat& frame, const cv::Mat& refe
   DetectedContacts out;
   const cv::Rect image(0, 0, frame.cols, frame.rows);
   out.window = image;
-  bool has_gain = false;
   if (options_.screen) {
     const auto window = Screen(frame, reference, &out.gain);
-    has_gain = true;
     if (!window) {
       out.window = cv::Rect();
       return out;
@@ -286,8 +284,7 @@ DetectedContacts Reconstructor::Detect(const cv::Mat& frame, const cv::Mat& refe
   if (out.window == image) {
     out.difference = Difference(frame, reference, &out.gain);
   } else {
-    // The gain from the whole image (the screen's); the difference in the window.
-    if (!has_gain) out.gain = EstimateGain(frame, reference, visible_, options_.difference);
+    // Only the screen narrows the window: its gain (the whole image's) and the difference here.
     out.difference = cv::Mat(frame.size(), CV_32FC3, cv::Scalar::all(0));
     const cv::Rect& w = out.window;
     NormalizedDifference(frame(w), reference(w), visible_(w), options_.difference, nullptr,
