@@ -23,6 +23,9 @@ void ImpressionCentroidOptions::Check() const {
   }
   if (!(min_threshold_dn >= 0.0)) fail("min_threshold_dn", min_threshold_dn, "must be >= 0");
   if (!(window_px > 0.0)) fail("window_px", window_px, "must be > 0");
+  if (!(max_area_fraction > 0.0 && max_area_fraction <= 1.0)) {
+    fail("max_area_fraction", max_area_fraction, "must be in (0, 1]");
+  }
 }
 
 std::optional<ImpressionRegion> FindImpressionRegion(const cv::Mat& press, const cv::Mat& reference,
@@ -37,6 +40,10 @@ std::optional<ImpressionRegion> FindImpressionRegion(const cv::Mat& press, const
   if (peak < options.min_peak_dn) return std::nullopt;
   const float threshold =
       static_cast<float>(std::max(options.threshold_fraction * peak, options.min_threshold_dn));
+  const int usable = mask.empty() ? press.rows * press.cols : cv::countNonZero(mask);
+  if (cv::countNonZero(magnitude > threshold) > options.max_area_fraction * usable) {
+    return std::nullopt;
+  }
   const int w = static_cast<int>(std::ceil(options.window_px));
   const cv::Rect window = cv::Rect(peak_at.x - w, peak_at.y - w, 2 * w + 1, 2 * w + 1) &
                           cv::Rect(0, 0, press.cols, press.rows);

@@ -25,6 +25,9 @@ struct ImpressionCentroidOptions {
   double threshold_fraction = 0.2;  // region = pixels above this fraction of the peak, (0, 1)
   double min_threshold_dn = 3.0;    // ... and above this many DN (noise floor, >= 0)
   double window_px = 60.0;          // only pixels within this distance of the peak (> 0)
+  // More than this fraction of the usable pixels above the threshold, anywhere: no press but a
+  // frame unlike the reference everywhere (saturated, black, corrupt): no impression ((0, 1]).
+  double max_area_fraction = 0.25;
   template <typename Self, typename Visitor>
   static void Fields(Self& self, Visitor& visit) {
     visit("blur_sigma_px", self.blur_sigma_px);
@@ -32,6 +35,7 @@ struct ImpressionCentroidOptions {
     visit("threshold_fraction", self.threshold_fraction);
     visit("min_threshold_dn", self.min_threshold_dn);
     visit("window_px", self.window_px);
+    visit("max_area_fraction", self.max_area_fraction);
   }
   void Check() const;  // throws std::invalid_argument naming the field and value
 };
@@ -46,7 +50,8 @@ struct ImpressionRegion {
 };
 
 // `press`, `reference`: CV_8UC3 of one size (std::invalid_argument otherwise); optional `mask`
-// (CV_8U, non-zero = usable). nullopt when no peak reaches min_peak_dn.
+// (CV_8U, non-zero = usable). nullopt when no peak reaches min_peak_dn, or when more than
+// max_area_fraction of the usable pixels exceed the threshold.
 std::optional<ImpressionRegion> FindImpressionRegion(const cv::Mat& press, const cv::Mat& reference,
                                                      const ImpressionCentroidOptions& options = {},
                                                      const cv::Mat& mask = cv::Mat());

@@ -17,6 +17,16 @@
 namespace gs360 {
 namespace {
 
+// The detected boards do not reach far enough out (CheckCoverage).
+class CoverageError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+}  // namespace
+
+namespace {
+
 template <typename T>
 [[noreturn]] void ThrowField(const char* field, T value, const char* what) {
   ThrowFieldError(std::string("IntrinsicsOptions.") + field, static_cast<double>(value), what);
@@ -155,12 +165,12 @@ void CheckCoverage(const FisheyeIntrinsics& nominal, const std::vector<int>& can
   }
   result->radial_coverage = max_radius / circle_radius;
   if (result->radial_coverage < options.min_radial_coverage) {
-    throw std::runtime_error("CalibrateIntrinsics: the detected boards reach " +
-                             Fixed(max_radius, 1) + " px from the principal point, " +
-                             Fixed(100.0 * result->radial_coverage, 1) +
-                             "% of the image circle's radius (" + Fixed(circle_radius, 1) +
-                             " px); need " + Fixed(100.0 * options.min_radial_coverage, 1) +
-                             "%: take images with the board near the rim of the field");
+    throw CoverageError("CalibrateIntrinsics: the detected boards reach " + Fixed(max_radius, 1) +
+                        " px from the principal point, " +
+                        Fixed(100.0 * result->radial_coverage, 1) +
+                        "% of the image circle's radius (" + Fixed(circle_radius, 1) +
+                        " px); need " + Fixed(100.0 * options.min_radial_coverage, 1) +
+                        "%: take images with the board near the rim of the field");
   }
 }
 
@@ -207,8 +217,13 @@ FisheyeFit FitFisheye(const std::vector<int>& candidates, const std::vector<Corn
     } catch (const cv::Exception& e) {
       const int bad = IllConditionedIndex(e.what());
       if (bad < 0 || bad >= static_cast<int>(fit.used.size())) {
+        // OpenCV's message is an assertion in its own code ("fabs(norm_u1) > 0"): say what it
+        // means instead, and keep it for the log only.
         throw std::runtime_error(
-            std::string("CalibrateIntrinsics: cv::fisheye::calibrate failed: ") + e.what());
+            "CalibrateIntrinsics: cv::fisheye::calibrate found no solution from the nominal lens "
+            "(fx " +
+            Fixed(nominal.fx, 1) + ", fy " + Fixed(nominal.fy, 1) +
+            " px): its initial estimate of a board's pose failed (OpenCV: " + e.err + ")");
       }
       result->images[fit.used[bad]].reason = "ill-conditioned (OpenCV CALIB_CHECK_COND)";
       fit.used.erase(fit.used.begin() + bad);
@@ -303,9 +318,13 @@ IntrinsicsResult CalibrateIntrinsics(std::span<const cv::Mat> images,
   } catch (const std::runtime_error& e) {
     // A nominal focal length far from the lens's misleads the coverage check and OpenCV's
     // initialisation, and their messages then blame the images. If the boards fit from another
-    // focal length, that is the problem to report (not a result to use: the nominal lens also
-    // seeds the plan and the pose).
-    for (const double scale : {0.25, 0.35, 0.5, 0.7, 1.4, 2.0, 2.8, 4.0}) {
+    // focal length: within kGuessTolerance of the nominal, the nominal was only a rough guess and
+    // the fit is the answer (unless coverage failed: boards only at the centre fit from a shorter
+    // guess too, and their coverage message is the true one); farther, that is the problem to
+    // report (not a result to use: the nominal lens also seeds the plan and the pose).
+    constexpr double kGuessTolerance = 0.3;
+    const bool coverage_failed = dynamic_cast<const CoverageError*>(&e) != nullptr;
+    for (const double scale : {0.8, 1.25, 0.25, 0.35, 0.5, 0.7, 1.4, 2.0, 2.8, 4.0}) {
       FisheyeIntrinsics guess = nominal;
       guess.fx *= scale;
       guess.fy *= scale;
@@ -317,7 +336,9 @@ IntrinsicsResult CalibrateIntrinsics(std::span<const cv::Mat> images,
       }
       // A fit near the nominal says the nominal was not the problem (boards only at the centre
       // fit from a shorter guess too, and their coverage message is the true one).
-      if (std::abs(r->intrinsics.fx / nominal.fx - 1.0) < 0.25) continue;
+      const double off = std::abs(r->intrinsics.fx / nominal.fx - 1.0);
+      if (!coverage_failed && off <= kGuessTolerance) return *r;
+      if (off < 0.25) continue;
       throw std::runtime_error(
           std::string(e.what()) + ". But the nominal lens looks far from the real one: from " +
           Fixed(scale, 2) + " times its focal length the boards fit with an RMS of " +

@@ -596,6 +596,7 @@ void Calibration::Pose() {
     (*metrics)["observations"] = obs.size();
     (*metrics)["rms_px"] = r.rms_px;
     (*metrics)["paper_rms_px"] = r.paper_rms_px;
+    (*metrics)["condition"] = r.condition;
     (*metrics)["inliers"] = r.inliers;
     (*metrics)["paper_inliers"] = r.paper_inliers;
     (*metrics)["bias_rounds"] = r.bias_rounds;

@@ -4,6 +4,8 @@
 #include <array>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
+#include <limits>
 #include <numbers>
 #include <numeric>
 #include <random>
@@ -12,6 +14,7 @@
 #include <thread>
 
 #include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
@@ -55,6 +58,33 @@ Eigen::Vector2d Residual(const FisheyeCamera& camera, const Rigid3d& pose, const
   return camera.ProjectUnchecked(pose * o.contact_point_sensor) + offset - o.centroid_px;
 }
 
+// The pose shifted by +-kJacobianStep along each of its 6 parameters (Perturb), for central
+// differences: [2k] = +, [2k + 1] = -.
+constexpr double kJacobianStep = 1e-6;
+using Shifted = std::array<Rigid3d, 12>;
+Shifted ShiftedPoses(const Rigid3d& pose) {
+  Shifted shifted;
+  for (int k = 0; k < 6; ++k) {
+    Eigen::Matrix<double, 6, 1> d = Eigen::Matrix<double, 6, 1>::Zero();
+    d[k] = kJacobianStep;
+    shifted[2 * k] = Perturb(pose, d);
+    shifted[2 * k + 1] = Perturb(pose, -d);
+  }
+  return shifted;
+}
+
+// d(pixel) / d(pose parameters) of the sensor point x, by central differences.
+Eigen::Matrix<double, 2, 6> ProjectionJacobian(const FisheyeCamera& camera, const Shifted& shifted,
+                                               const Eigen::Vector3d& x) {
+  Eigen::Matrix<double, 2, 6> J;
+  for (int k = 0; k < 6; ++k) {
+    J.col(k) = (camera.ProjectUnchecked(shifted[2 * k] * x) -
+                camera.ProjectUnchecked(shifted[2 * k + 1] * x)) /
+               (2.0 * kJacobianStep);
+  }
+  return J;
+}
+
 // One robust Levenberg-Marquardt fit over the observations flagged in `use`.
 Rigid3d LevenbergMarquardt(const FisheyeCamera& camera, std::span<const PoseObservation> obs,
                            std::span<const Eigen::Vector2d> offsets, const std::vector<bool>& use,
@@ -74,27 +104,15 @@ Rigid3d LevenbergMarquardt(const FisheyeCamera& camera, std::span<const PoseObse
   };
   double lambda = 1e-3;
   double current = cost(pose);
-  constexpr double kStep = 1e-6;
   for (int it = 0; it < options.max_iterations; ++it) {
     Eigen::Matrix<double, 6, 6> H = Eigen::Matrix<double, 6, 6>::Zero();
     Eigen::Matrix<double, 6, 1> g = Eigen::Matrix<double, 6, 1>::Zero();
-    std::array<Rigid3d, 12> shifted;
-    for (int k = 0; k < 6; ++k) {
-      Eigen::Matrix<double, 6, 1> d = Eigen::Matrix<double, 6, 1>::Zero();
-      d[k] = kStep;
-      shifted[2 * k] = Perturb(pose, d);
-      shifted[2 * k + 1] = Perturb(pose, -d);
-    }
+    const Shifted shifted = ShiftedPoses(pose);
     for (std::size_t i = 0; i < obs.size(); ++i) {
       if (!use[i]) continue;
-      const Eigen::Vector3d& x = obs[i].contact_point_sensor;
       const Eigen::Vector2d r = Residual(camera, pose, obs[i], offset(i));
-      Eigen::Matrix<double, 2, 6> J;
-      for (int k = 0; k < 6; ++k) {
-        J.col(k) = (camera.ProjectUnchecked(shifted[2 * k] * x) -
-                    camera.ProjectUnchecked(shifted[2 * k + 1] * x)) /
-                   (2.0 * kStep);
-      }
+      const Eigen::Matrix<double, 2, 6> J =
+          ProjectionJacobian(camera, shifted, obs[i].contact_point_sensor);
       const double w = obs[i].weight * HuberWeight(r.norm(), options.huber_px);
       H.noalias() += w * J.transpose() * J;
       g.noalias() += w * J.transpose() * r;
@@ -123,6 +141,31 @@ Rigid3d LevenbergMarquardt(const FisheyeCamera& camera, std::span<const PoseObse
   return pose;
 }
 
+// How well the observations flagged in `use` pin the pose down: the condition number of their
+// weighted Jacobian at `pose`, its columns scaled to unit norm first so that radians and
+// millimetres compare (sqrt of the extreme eigenvalues' ratio of the scaled J^T W J). Infinite
+// when a direction of the pose moves no observation (collinear points, for one).
+double FitCondition(const FisheyeCamera& camera, std::span<const PoseObservation> obs,
+                    const std::vector<bool>& use, const Rigid3d& pose) {
+  const Shifted shifted = ShiftedPoses(pose);
+  Eigen::Matrix<double, 6, 6> H = Eigen::Matrix<double, 6, 6>::Zero();
+  for (std::size_t i = 0; i < obs.size(); ++i) {
+    if (!use[i]) continue;
+    const Eigen::Matrix<double, 2, 6> J =
+        ProjectionJacobian(camera, shifted, obs[i].contact_point_sensor);
+    H.noalias() += obs[i].weight * J.transpose() * J;
+  }
+  const Eigen::Matrix<double, 6, 1> d = H.diagonal();
+  if (!(d.minCoeff() > 0.0) || !d.allFinite()) return std::numeric_limits<double>::infinity();
+  const Eigen::Matrix<double, 6, 1> s = d.cwiseSqrt().cwiseInverse();
+  const Eigen::Matrix<double, 6, 6> scaled = s.asDiagonal() * H * s.asDiagonal();
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eig(scaled,
+                                                                       Eigen::EigenvaluesOnly);
+  const double lo = eig.eigenvalues().minCoeff(), hi = eig.eigenvalues().maxCoeff();
+  if (!(lo > 0.0)) return std::numeric_limits<double>::infinity();
+  return std::sqrt(hi / lo);
+}
+
 // Area centroid of the convex hull of the rendered contact pixels: the region an impression
 // detector sees (calib/impression_centroid.h), bridged across fins like the observed blob.
 Eigen::Vector2d HullCentroid(const ProbeRender& pr) {
@@ -139,6 +182,13 @@ Eigen::Vector2d HullCentroid(const ProbeRender& pr) {
   const cv::Moments m = cv::moments(hull);
   if (!(m.m00 > 0.0)) return pr.contact_centroid;
   return {m.m10 / m.m00, m.m01 / m.m00};
+}
+
+std::string FormatCondition(double c) {
+  if (!std::isfinite(c)) return "infinite";
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.3g", c);
+  return buf;
 }
 
 std::string ObservationError(std::size_t i, const char* what) {
@@ -164,6 +214,7 @@ void PoseOptions::Check() const {
   }
   if (min_observations < 6) ThrowField("min_observations", min_observations, "must be >= 6");
   if (bias_rounds < 1) ThrowField("bias_rounds", bias_rounds, "must be >= 1");
+  if (!(max_condition >= 1.0)) ThrowField("max_condition", max_condition, "must be >= 1");
   if (!(ball_radius_mm > 0.0) || !std::isfinite(ball_radius_mm)) {
     ThrowField("ball_radius_mm", ball_radius_mm, "must be finite and > 0");
   }
@@ -235,6 +286,7 @@ PoseFit RefineCamFromSensor(const FisheyeCamera& camera,
     wsum += observations[i].weight;
   }
   fit.rms_px = std::sqrt(sum / wsum);
+  fit.condition = FitCondition(camera, observations, use, pose);
   return fit;
 }
 
@@ -428,6 +480,15 @@ PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
     }
   }
 
+  result.condition = fit.condition;
+  if (!(fit.condition <= options.max_condition)) {
+    throw PoseError("EstimateCamFromSensor: the " + std::to_string(n_used) +
+                    " impressions do not pin the camera pose down (condition number " +
+                    FormatCondition(fit.condition) + ", more than max_condition " +
+                    FormatCondition(options.max_condition) +
+                    "): their contact points are clustered or nearly on one line; probe over "
+                    "more of the gel");
+  }
   result.cam_from_sensor = fit.cam_from_sensor;
   result.rms_px = fit.rms_px;
   result.inliers = fit.inliers;

@@ -76,7 +76,10 @@ struct PoseOptions {
   // the least oblique are used instead (min_view_fraction in (0, 1]).
   double max_view_angle_deg = 50.0;
   double min_view_fraction = 0.25;
-  int min_observations = 6;       // fewer usable observations -> PoseError (>= 6)
+  int min_observations = 6;  // fewer usable observations -> PoseError (>= 6)
+  // The refined fit's condition number (PoseResult::condition) above this -> PoseError: the
+  // impressions do not determine the pose (>= 1; infinity accepts any).
+  double max_condition = 100.0;
   bool model_bias = true;         // needs the gel mesh (PoseScene::gel)
   int bias_rounds = 3;            // bias model: render / refit rounds (>= 1)
   double ball_radius_mm = 2.0;    // the probe ball (> 0)
@@ -96,6 +99,7 @@ struct PoseOptions {
     visit("max_view_angle_deg", self.max_view_angle_deg);
     visit("min_view_fraction", self.min_view_fraction);
     visit("min_observations", self.min_observations);
+    visit("max_condition", self.max_condition);
     visit("model_bias", self.model_bias);
     visit("bias_rounds", self.bias_rounds);
     visit("ball_radius_mm", self.ball_radius_mm);
@@ -117,7 +121,10 @@ struct PoseResult {
   Rigid3d cam_from_sensor;        // refined (with the bias model if enabled)
   Rigid3d paper_cam_from_sensor;  // the paper's RANSAC PnP on ransac_probes probes
   double rms_px = 0.0;            // refined: RMS residual over the inliers (bias-corrected)
-  double paper_rms_px = 0.0;      // paper: RMS reprojection over its RANSAC inliers
+  // How well the refined fit's observations pin the pose down: condition number of their
+  // Jacobian with unit-norm columns (1 = ideal; infinite = a direction of the pose unobserved).
+  double condition = 0.0;
+  double paper_rms_px = 0.0;  // paper: RMS reprojection over its RANSAC inliers
   int paper_inliers = 0;
   int oblique = 0;                // observations left out of the refinement by the view bound
   double view_bound_deg = 0.0;    // the view-angle bound applied (max_view_angle_deg or more)
@@ -146,6 +153,7 @@ PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
 struct PoseFit {
   Rigid3d cam_from_sensor;
   double rms_px = 0.0;
+  double condition = 0.0;  // as PoseResult::condition, over the inliers at the fit
   int inliers = 0;
   std::vector<bool> inlier;
 };

@@ -20,6 +20,10 @@ void ImpressionOptions::Check() const {
     throw std::invalid_argument("ImpressionOptions.min_peak_dn must be > 0, got " +
                                 std::to_string(min_peak_dn));
   }
+  if (!(max_area_fraction > 0.0 && max_area_fraction <= 1.0)) {
+    throw std::invalid_argument("ImpressionOptions.max_area_fraction must be in (0, 1], got " +
+                                std::to_string(max_area_fraction));
+  }
   if (!(threshold_fraction > 0.0 && threshold_fraction < 1.0)) {
     throw std::invalid_argument("ImpressionOptions.threshold_fraction must be in (0, 1), got " +
                                 std::to_string(threshold_fraction));
@@ -121,6 +125,8 @@ std::optional<Impression> FindImpression(const cv::Mat& press, const cv::Mat& re
     }
   }
   if (sw <= 0.0) return std::nullopt;
+  const int usable = mask.empty() ? press.rows * press.cols : cv::countNonZero(mask);
+  if (count > options.max_area_fraction * usable) return std::nullopt;
   Impression out;
   out.centroid = Eigen::Vector2d(su / sw, sv / sw);
   out.peak_dn = peak;

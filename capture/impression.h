@@ -14,7 +14,10 @@ struct ImpressionOptions {
   double blur_sigma_px = 2.0;        // Gaussian blur of the difference magnitude (noise)
   double min_peak_dn = 6.0;          // weaker peaks are "no impression" (DN, 8-bit scale)
   double threshold_fraction = 0.35;  // blob = connected pixels above this fraction of the peak
-  void Check() const;                // throws std::invalid_argument naming the field and value
+  // A blob over more than this fraction of the usable pixels is no press but a frame unlike the
+  // reference everywhere (saturated, black, corrupt, the lighting changed): no impression.
+  double max_area_fraction = 0.25;
+  void Check() const;  // throws std::invalid_argument naming the field and value
 };
 
 struct Impression {
@@ -33,7 +36,8 @@ cv::Mat DifferenceMagnitude(const cv::Mat& press, const cv::Mat& reference, cons
 
 // `press` and `reference`: CV_8UC3 of equal size (std::invalid_argument otherwise). Optional
 // `mask` (CV_8U, non-zero = usable pixel, e.g. not behind a fin). Returns nullopt when no blob
-// reaches min_peak_dn: no contact visible.
+// reaches min_peak_dn (no contact visible) or the blob covers more than max_area_fraction of the
+// usable pixels (not a press).
 std::optional<Impression> FindImpression(const cv::Mat& press, const cv::Mat& reference,
                                          const ImpressionOptions& options = {},
                                          const cv::Mat& mask = cv::Mat());

@@ -262,16 +262,8 @@ void PrintRow(const Json& row) {
 }
 
 std::filesystem::path CacheDir(const BenchReconArgs& a) {
-  std::filesystem::path base = a.cache;
-  if (base.empty()) {
-    const char* xdg = std::getenv("XDG_CACHE_HOME");
-    const char* home = std::getenv("HOME");
-    base = xdg && *xdg ? std::filesystem::path(xdg) / "gs360"
-           : home      ? std::filesystem::path(home) / ".cache" / "gs360"
-                       : std::filesystem::temp_directory_path() / "gs360-cache";
-  }
-  return base /
-         ("bench-recon-model-" + std::to_string(a.train_probes) + "-" + std::to_string(a.epochs));
+  return SimModelCacheDir(a.cache, "bench-recon-model-" + std::to_string(a.train_probes) + "-" +
+                                       std::to_string(a.epochs));
 }
 
 int RunBenchRecon(const BenchReconArgs& a, const CommandContext& ctx) {

@@ -39,6 +39,7 @@ double CpuSeconds() {
 void RegisterDaemonBench(CLI::App& bench, CommandContext& ctx);  // bench_daemon.cc
 void RegisterReconBench(CLI::App& bench, CommandContext& ctx);   // bench_recon.cc
 void RegisterSweepBench(CLI::App& bench, CommandContext& ctx);   // bench_sweep.cc
+void RegisterStressBench(CLI::App& bench, CommandContext& ctx);  // bench_stress.cc
 
 void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
   static BenchOptions o;
@@ -47,6 +48,7 @@ void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
   RegisterDaemonBench(*bench, ctx);
   RegisterReconBench(*bench, ctx);
   RegisterSweepBench(*bench, ctx);
+  RegisterStressBench(*bench, ctx);
   auto* acq = bench->add_subcommand(
       "acquisition",
       "Time a run: probing wall time vs the planner's estimate, host time per probe");

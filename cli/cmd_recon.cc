@@ -130,6 +130,7 @@ Json ReconstructAndWrite(const Reconstructor& recon, const ModelBundle& bundle,
       {"point_cloud_frame", "sensor (mm): origin at the base centre, +z along the finger"},
       {"points", points.size()},
       {"seconds", r.seconds},
+      {"problem", r.problem.empty() ? Json(nullptr) : Json(r.problem)},
       {"contacts", Json::array()}};
   for (const ContactSummary& c : contacts) side["contacts"].push_back(ContactJson(c));
   WriteText(out / (stem + "-depth.json"), side.dump(2) + "\n");
@@ -140,6 +141,9 @@ void PrintContacts(const std::string& name, const Json& side) {
   const Json& contacts = side["contacts"];
   std::printf("%s: %zu contact%s (%.1f ms)\n", name.c_str(), contacts.size(),
               contacts.size() == 1 ? "" : "s", side["seconds"].get<double>() * 1e3);
+  if (side["problem"].is_string()) {
+    std::printf("  not reconstructed: %s\n", side["problem"].get<std::string>().c_str());
+  }
   for (const Json& c : contacts) {
     const Json& p = c["centre_sensor_mm"];
     std::printf("  at (%.2f, %.2f, %.2f) mm: peak %.3f mm, area %.2f mm^2%s\n", p[0].get<double>(),

@@ -1,6 +1,8 @@
 #include "cli/sim_model.h"
 
 #include <cmath>
+#include <cstdlib>
+#include <filesystem>
 #include <numbers>
 #include <random>
 #include <stdexcept>
@@ -112,6 +114,18 @@ std::filesystem::path MakeSimModel(const std::filesystem::path& dir, const SimMo
   co.threads = o.threads;
   RunDatabase db(dir / "run.db");
   return RunCalibration(db, run, in, co).model_path;
+}
+
+std::filesystem::path SimModelCacheDir(const std::string& cache, const std::string& name) {
+  std::filesystem::path base = cache;
+  if (base.empty()) {
+    const char* xdg = std::getenv("XDG_CACHE_HOME");
+    const char* home = std::getenv("HOME");
+    base = xdg && *xdg ? std::filesystem::path(xdg) / "gs360"
+           : home      ? std::filesystem::path(home) / ".cache" / "gs360"
+                       : std::filesystem::temp_directory_path() / "gs360-cache";
+  }
+  return base / name;
 }
 
 }  // namespace gs360::cli

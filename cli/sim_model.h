@@ -6,6 +6,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include <Eigen/Core>
@@ -32,6 +33,10 @@ struct SimPress {
   Eigen::Vector3d ball_sensor;
 };
 std::vector<SimPress> SimPresses(const SimRig& rig, int count, double depth_mm, std::uint64_t seed);
+
+// Where a benchmark keeps its calibrated model between runs: `cache` if given, else
+// $XDG_CACHE_HOME/gs360, ~/.cache/gs360 or the temporary directory's gs360-cache, then `name`.
+std::filesystem::path SimModelCacheDir(const std::string& cache, const std::string& name);
 
 // Calibrates a model in `dir` (a database and the calibration's exports; reused when its files
 // are there and the options are the same: the stage cache) and returns the bundle's path. Throws

@@ -250,6 +250,8 @@ void MeshRepairOptions::Check() const {
     bad("weld_tolerance", weld_tolerance);
   if (!(degenerate_area >= 0.0) || !std::isfinite(degenerate_area))
     bad("degenerate_area", degenerate_area);
+  if (!(degenerate_height >= 0.0) || !std::isfinite(degenerate_height))
+    bad("degenerate_height", degenerate_height);
   if (!(base_tolerance >= 0.0) || !std::isfinite(base_tolerance))
     bad("base_tolerance", base_tolerance);
   if (!std::isfinite(base_z)) {
@@ -382,10 +384,14 @@ bool RemoveDegenerate(TriangleMesh& mesh, const MeshRepairOptions& options, Mesh
     for (const auto& f : mesh.triangles) {
       bool degenerate = f[0] == f[1] || f[1] == f[2] || f[0] == f[2];
       if (!degenerate) {
-        const Eigen::Vector3d c = (mesh.vertices[f[1]] - mesh.vertices[f[0]])
-                                      .cross(mesh.vertices[f[2]] - mesh.vertices[f[0]]);
-        const double area = 0.5 * c.norm();
-        degenerate = std::isfinite(area) && area <= options.degenerate_area;
+        const Eigen::Vector3d& a = mesh.vertices[f[0]];
+        const Eigen::Vector3d& b = mesh.vertices[f[1]];
+        const Eigen::Vector3d& c = mesh.vertices[f[2]];
+        const double area = 0.5 * (b - a).cross(c - a).norm();
+        const double longest = std::max({(b - a).norm(), (c - b).norm(), (a - c).norm()});
+        const double height = longest > 0.0 ? 2.0 * area / longest : 0.0;
+        degenerate = std::isfinite(area) &&
+                     (area <= options.degenerate_area || height <= options.degenerate_height);
       }
       if (degenerate) {
         ++r.degenerate_triangles;
@@ -397,7 +403,8 @@ bool RemoveDegenerate(TriangleMesh& mesh, const MeshRepairOptions& options, Mesh
     if (r.degenerate_triangles > 0) {
       std::ostringstream os;
       os << Plural(r.degenerate_triangles, "triangle is", "triangles are")
-         << " degenerate (repeated vertex or area <= " << options.degenerate_area << " mm^2)";
+         << " degenerate (repeated vertex, area <= " << options.degenerate_area
+         << " mm^2 or height <= " << options.degenerate_height << " mm)";
       r.problems.push_back(os.str());
       if (options.remove_degenerate) {
         r.fixes.push_back("removed " + Plural(r.degenerate_triangles, "degenerate triangle",

@@ -70,6 +70,9 @@ struct MeshRepairOptions {
   double weld_tolerance = 1e-5;
   // Triangles with area below this (mm^2) or a repeated vertex are degenerate.
   double degenerate_area = 1e-12;
+  // So are slivers: triangles whose height over their longest edge is below this (mm), such as
+  // three collinear vertices that a file's float32 coordinates no longer keep exactly on a line.
+  double degenerate_height = 1e-5;
   // The sensor's base plane: boundary edges with both ends within base_tolerance (mm) of
   // z = base_z are the expected base opening; all other boundary edges are holes.
   double base_z = 0.0;

@@ -207,6 +207,7 @@ Reconstructor::Reconstructor(std::shared_ptr<const SurfaceMap> map, const Fishey
         std::to_string(options_.difference.context_sigmas_px.size()) + " context scales)");
   }
   visible_ = map_->VisibleMask();
+  visible_pixels_ = cv::countNonZero(visible_);
   // The screen's half-size images: a coarse pixel counts only where all four fine ones are seen.
   cv::Mat coarse_visible;
   cv::resize(visible_, coarse_visible, cv::Size(), 0.5, 0.5, cv::INTER_AREA);
@@ -484,6 +485,23 @@ FrameReconstruction Reconstructor::Reconstruct(const cv::Mat& frame,
   FrameReconstruction out;
   const DetectedContacts detected = Detect(frame, reference);
   out.gain = detected.gain;
+  // Contacts change a small part of the image (a dense press, about 3 %): a frame changed over
+  // much of it is no tactile frame against this reference, and its "regions" would be
+  // reconstructed into a phantom the size of the finger.
+  constexpr double kMaxChangedFraction = 0.3;
+  int changed = 0;
+  for (const ContactRegion& region : detected.regions) changed += region.area_px;
+  out.changed_fraction = visible_pixels_ > 0 ? static_cast<double>(changed) / visible_pixels_ : 0;
+  if (out.changed_fraction > kMaxChangedFraction) {
+    out.problem = "the frame differs from the reference over " + std::to_string(changed) +
+                  " pixels, more than " +
+                  std::to_string(static_cast<int>(100.0 * kMaxChangedFraction)) + " % of the " +
+                  std::to_string(visible_pixels_) +
+                  " the camera sees on the gel and more than any contact: a saturated, black or "
+                  "corrupt frame, changed lighting or a moved camera (recapture the reference)";
+    out.seconds = Seconds(t0);
+    return out;
+  }
   for (const ContactRegion& region : detected.regions) {
     if (region.roi.width < 3 || region.roi.height < 3) continue;
     out.regions.push_back(ReconstructRegion(detected.difference, region, options_.integration));

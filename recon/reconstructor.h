@@ -89,6 +89,11 @@ struct DetectedContacts {
 struct FrameReconstruction {
   std::vector<RegionReconstruction> regions;  // empty = no contact
   cv::Vec3d gain{1.0, 1.0, 1.0};              // LED drift gain found against the reference
+  // Empty for a usable frame. Otherwise why the frame was not reconstructed (regions is then
+  // empty): it differs from the reference over more of the image than any contact could (a
+  // saturated, black or corrupt frame, the lighting changed, the camera moved).
+  std::string problem;
+  double changed_fraction = 0.0;  // of the visible pixels, the share the detection marks changed
   double seconds = 0.0;
 };
 
@@ -153,6 +158,7 @@ class Reconstructor {
   Mlp mlp_;
   cv::Mat reference_;
   cv::Mat visible_;
+  int visible_pixels_ = 0;
   cv::Mat coarse_visible_;    // CV_8U, half size: 255 where all four pixels are visible
   cv::Mat coarse_reference_;  // reference_ at half size (2x2 means)
   ReconstructionOptions options_;

@@ -41,6 +41,10 @@ Rigid3d RigConfig::machine_from_sensor() const {
 
 void RigConfig::Check() const {
   if (mesh_path.empty()) shape.Check();
+  if (!(mesh_scale > 0.0) || !std::isfinite(mesh_scale)) {
+    throw std::invalid_argument("RigConfig.mesh_scale must be finite and > 0, got " +
+                                std::to_string(mesh_scale));
+  }
   fins.Check();
   camera.Check();
   if (!std::isfinite(camera_z) || camera_z >= fins.bottom_z) {
@@ -78,6 +82,7 @@ nlohmann::json RigConfigToJson(const RigConfig& c) {
   return {
       {"shape", SensorShapeToJson(c.shape)},
       {"mesh_path", c.mesh_path},
+      {"mesh_scale", c.mesh_scale},
       {"fins",
        {{"enabled", c.fins.enabled},
         {"thickness", c.fins.thickness},
@@ -138,6 +143,7 @@ void ReadSensorShape(JsonReader& s, SensorShapeOptions& shape) {
 void ReadRigConfig(JsonReader& r, RigConfig& c) {
   r.Object("shape", [&](JsonReader& s) { ReadSensorShape(s, c.shape); });
   r.Get("mesh_path", c.mesh_path);
+  r.Get("mesh_scale", c.mesh_scale);
   r.Object("fins", [&](JsonReader& o) {
     o.Get("enabled", c.fins.enabled);
     o.Get("thickness", c.fins.thickness);

@@ -22,7 +22,8 @@ namespace gs360 {
 
 struct RigConfig {
   SensorShapeOptions shape;  // built-in sensor (ignored when mesh_path is set)
-  std::string mesh_path;     // STL / OBJ / PLY in the sensor frame, mm (optional)
+  std::string mesh_path;     // STL / OBJ / PLY in the sensor frame (optional)
+  double mesh_scale = 1.0;   // millimetres per unit of the mesh file (1000 for a file in metres)
   FinOptions fins = DefaultFins();
   FisheyeIntrinsics camera = FisheyeIntrinsics::Default160();
   // Nominal camera: on the sensor axis at z = camera_z (below the fins' bottom edge), looking +z,

@@ -257,4 +257,16 @@ std::vector<Rigid3d> CheckerboardPoses(const CheckerboardOptions& board,
   return poses;
 }
 
+std::vector<cv::Mat> RenderCheckerboardSet(const CheckerboardOptions& board,
+                                           const FisheyeIntrinsics& intrinsics,
+                                           const CheckerboardPoseOptions& poses,
+                                           std::uint64_t seed) {
+  std::vector<cv::Mat> images;
+  std::uint64_t k = 0;
+  for (const Rigid3d& pose : CheckerboardPoses(board, intrinsics, poses, seed)) {
+    images.push_back(RenderCheckerboard(board, pose, intrinsics, seed * 1000 + k++));
+  }
+  return images;
+}
+
 }  // namespace gs360

@@ -73,4 +73,11 @@ std::vector<Rigid3d> CheckerboardPoses(const CheckerboardOptions& board,
                                        const FisheyeIntrinsics& intrinsics,
                                        const CheckerboardPoseOptions& options, std::uint64_t seed);
 
+// A set of calibration shots: CheckerboardPoses(board, intrinsics, poses, seed), each rendered
+// with its own noise seed (seed * 1000 + its index). Throws as those two.
+std::vector<cv::Mat> RenderCheckerboardSet(const CheckerboardOptions& board,
+                                           const FisheyeIntrinsics& intrinsics,
+                                           const CheckerboardPoseOptions& poses,
+                                           std::uint64_t seed);
+
 }  // namespace gs360

@@ -27,15 +27,9 @@ FisheyeIntrinsics PerturbedLens() {
 }
 
 std::vector<cv::Mat> RenderBoards(const FisheyeIntrinsics& truth, int count, std::uint64_t seed) {
-  CheckerboardOptions board;
   CheckerboardPoseOptions pose_options;
   pose_options.count = count;
-  std::vector<cv::Mat> images;
-  std::uint64_t k = 0;
-  for (const Rigid3d& pose : CheckerboardPoses(board, truth, pose_options, seed)) {
-    images.push_back(RenderCheckerboard(board, pose, truth, seed * 1000 + k++));
-  }
-  return images;
+  return RenderCheckerboardSet(CheckerboardOptions{}, truth, pose_options, seed);
 }
 
 TEST_CASE("CalibrateIntrinsics recovers a perturbed fisheye lens", "[intrinsics]") {

@@ -1,0 +1,89 @@
+// `gs360 bench stress`: the numerical stress suite (stress/stress.h) as a table, Markdown or
+// JSON. The frame cases run through a model calibrated on the virtual rig (cached like
+// `bench recon`'s). Exit code 0 when every case passes, 1 when one fails.
+
+#include <cstdio>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "cli/commands.h"
+#include "cli/sim_model.h"
+#include "recon/model_bundle.h"
+#include "stress/stress.h"
+
+namespace gs360::cli {
+namespace {
+
+struct BenchStressArgs {
+  std::string model;
+  std::string cache;
+  std::vector<std::string> only;
+  std::uint64_t seed = 1;
+  bool markdown = false;
+};
+
+std::shared_ptr<const ModelBundle> LoadModel(const BenchStressArgs& a, bool quiet) {
+  std::filesystem::path path = a.model;
+  if (path.empty()) {
+    const SimModelOptions options;  // small: the frame cases test robustness, not accuracy
+    const auto dir = SimModelCacheDir(a.cache, "bench-stress-model");
+    if (!quiet)
+      std::fprintf(stderr, "model: calibrating on the virtual rig in %s (cached)\n", dir.c_str());
+    path = MakeSimModel(dir, options);
+  }
+  return std::make_shared<const ModelBundle>(ReadModelBundle(path));
+}
+
+int RunBenchStress(const BenchStressArgs& a, const CommandContext& ctx) {
+  StressContext context;
+  context.seed = a.seed;
+  context.model = LoadModel(a, ctx.json);
+  const bool table = !ctx.json && !a.markdown;
+  if (table) std::printf("%-12s %-64s %6s %8s\n", "stage", "case", "result", "seconds");
+  const auto outcomes = RunStress(context, a.only, [&](const StressOutcome& o) {
+    if (!table) return;
+    std::printf("%-12s %-64s %6s %8.2f\n", o.stage.c_str(), o.name.c_str(),
+                !o.passed ? "FAIL"
+                : o.limit ? "limit"
+                          : "pass",
+                o.seconds);
+    std::printf("    %s\n", o.observed.c_str());
+    std::fflush(stdout);
+  });
+  if (outcomes.empty()) {
+    std::fprintf(stderr, "gs360 bench stress: no stage or case is named as in --only\n");
+    return 2;
+  }
+  int failed = 0;
+  for (const StressOutcome& o : outcomes) failed += o.passed ? 0 : 1;
+  if (ctx.json) {
+    std::printf("%s\n", StressOutcomesToJson(outcomes).dump(2).c_str());
+  } else if (a.markdown) {
+    std::printf("%s", StressOutcomesToMarkdown(outcomes).c_str());
+  } else {
+    std::printf("%zu cases: %zu passed, %d failed\n", outcomes.size(), outcomes.size() - failed,
+                failed);
+  }
+  return failed == 0 ? 0 : 1;
+}
+
+}  // namespace
+
+void RegisterStressBench(CLI::App& bench, CommandContext& ctx) {
+  static BenchStressArgs a;
+  auto* cmd = bench.add_subcommand(
+      "stress", "Numerical stages at their edges: each case's tolerance or error, and the outcome");
+  cmd->add_option("--only", a.only, "Only these stages or cases (comma-separated)")->delimiter(',');
+  cmd->add_option("--seed", a.seed, "Seed of the cases' random draws");
+  cmd->add_option("--model", a.model,
+                  "A model bundle for the frame cases; default: one calibrated on the virtual rig");
+  cmd->add_option("--cache", a.cache, "Where the default model is kept (~/.cache/gs360)");
+  cmd->add_flag("--markdown", a.markdown,
+                "Print the outcomes as a Markdown table (docs/stress.md)");
+  cmd->callback([&ctx] { ctx.exit_code = RunBenchStress(a, ctx); });
+}
+
+}  // namespace gs360::cli
