@@ -40,6 +40,7 @@ void RegisterDaemonBench(CLI::App& bench, CommandContext& ctx);  // bench_daemon
 void RegisterReconBench(CLI::App& bench, CommandContext& ctx);   // bench_recon.cc
 void RegisterSweepBench(CLI::App& bench, CommandContext& ctx);   // bench_sweep.cc
 void RegisterStressBench(CLI::App& bench, CommandContext& ctx);  // bench_stress.cc
+void RegisterSoakBench(CLI::App& bench, CommandContext& ctx);    // bench_soak.cc
 
 void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
   static BenchOptions o;
@@ -49,6 +50,7 @@ void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
   RegisterReconBench(*bench, ctx);
   RegisterSweepBench(*bench, ctx);
   RegisterStressBench(*bench, ctx);
+  RegisterSoakBench(*bench, ctx);
   auto* acq = bench->add_subcommand(
       "acquisition",
       "Time a run: probing wall time vs the planner's estimate, host time per probe");
