@@ -459,7 +459,10 @@ RunReport RunSession::Run() {
 
 // ---------------------------------------------------------------------------------------------
 
-RunEngine::RunEngine(std::filesystem::path database) : database_(std::move(database)) {}
+RunEngine::RunEngine(std::filesystem::path database, RunDatabaseOptions options)
+    : database_(std::move(database)), database_options_(std::move(options)) {
+  database_options_.Check();
+}
 
 RunEngine::~RunEngine() {
   if (thread_.joinable()) {
@@ -519,7 +522,7 @@ ProbePlan RunEngine::PlanRun(const RunConfig& config, const SafetyLimits* limits
 }
 
 std::int64_t RunEngine::StoreRun(const RunConfig& config, const ProbePlan& plan) {
-  RunDatabase db(database_);
+  RunDatabase db(database_, database_options_);
   const RigGeometry rig = MakeRigGeometry(config.rig);
   const std::int64_t run_id =
       db.CreateRun(RunConfigToJson(config).dump(), ToHex64(rig.sensor_mesh.Hash()), config.name);
@@ -574,7 +577,7 @@ RunReport RunEngine::Execute(std::int64_t run_id, const SessionOverrides& overri
   } catch (...) {
     // Leave a resumable state behind whatever happened.
     try {
-      RunDatabase db(database_);
+      RunDatabase db(database_, database_options_);
       const auto run = db.GetRun(run_id);
       if (run && run->state == RunState::kRunning) db.SetRunState(run_id, RunState::kInterrupted);
     } catch (...) {

@@ -107,8 +107,8 @@ class RunEngine {
  public:
   using ProgressCallback = std::function<void(const RunProgress&)>;
 
-  // The database is opened (and created) per call; `database` must be writable.
-  explicit RunEngine(std::filesystem::path database);
+  // The database is opened (and created) per call with `options`; `database` must be writable.
+  explicit RunEngine(std::filesystem::path database, RunDatabaseOptions options = {});
   // Stops a started run (RequestStop) and joins its thread.
   ~RunEngine();
   RunEngine(const RunEngine&) = delete;
@@ -154,6 +154,7 @@ class RunEngine {
   void Publish(const RunProgress& progress);
 
   std::filesystem::path database_;
+  RunDatabaseOptions database_options_;
   std::optional<SafetyLimits> limits_;
   std::thread thread_;
   std::atomic<bool> running_{false};

@@ -90,8 +90,8 @@ class RunSession {
   RunSession(RunEngine& engine, std::int64_t run_id, SessionOverrides overrides)
       : engine_(engine),
         run_id_(run_id),
-        db_(engine.database_),
-        committer_(engine.database_),
+        db_(engine.database_, engine.database_options_),
+        committer_(engine.database_, engine.database_options_),
         overrides_(std::move(overrides)) {}
 
   RunReport Run();

@@ -8,6 +8,7 @@
 
 #include "rig_fixture.h"
 #include "storage/run_database.h"
+#include "storage/storage_error.h"
 #include "tests/wait.h"
 
 using namespace gs360;
@@ -223,6 +224,52 @@ TEST_CASE("fault: an abort resets the controller and loses its position", "[daem
     f.rig->cnc().RaiseAlarmDuringNextMove(3, 0.3);
   });
   CHECK(r.final.outcome == RunOutcome::kDone);
+}
+
+// ---- storage faults: a clear error, the run stops resumable, nothing committed is lost ----
+
+TEST_CASE("storage: a full disk stops the run naming it and the run resumes once there is room",
+          "[daemon][storage]") {
+  RigFixture f("diskfull", 60, 0.0);
+  std::int64_t run_id = 0;
+  {
+    RunEngine engine(f.db);
+    run_id = engine.CreateRun(f.config);
+  }
+  // The disk fills a few frames into the acquisition: the cap is the file's pages so far plus
+  // room for a few press frames (SQLite's PRAGMA max_page_count, as a full disk answers).
+  RunDatabaseOptions capped;
+  capped.max_page_count = static_cast<std::int64_t>(std::filesystem::file_size(f.db) / 16384) + 100;
+  std::string error;
+  {
+    RunEngine full(f.db, capped);
+    try {
+      const RunReport r = full.Execute(run_id);
+      CHECK(r.outcome != RunOutcome::kDone);
+      error = r.message;
+    } catch (const StorageError& e) {
+      error = e.what();
+    }
+  }
+  INFO(error);
+  CHECK_THAT(error, Catch::Contains("disk full"));
+  CHECK_THAT(error, Catch::Contains(f.db.filename().string()));
+  const std::int64_t before = RunDatabase(f.db).CountProbes(run_id).captured;
+  CHECK(before > 0);
+  CheckCommitted(f, run_id);
+  // Room again: the run resumes where it stopped and finishes.
+  RunEngine roomy(f.db);
+  SessionOverrides overrides;
+  RunReport r;
+  for (int attempt = 0; attempt < 3; ++attempt) {
+    overrides.confirm = RunDatabase(f.db).GetRun(run_id)->awaiting;
+    r = roomy.Execute(run_id, overrides);
+    if (r.outcome == RunOutcome::kDone) break;
+  }
+  CHECK(r.outcome == RunOutcome::kDone);
+  CHECK(r.counts.planned == 0);
+  CHECK(r.counts.captured > before);
+  CheckCommitted(f, run_id);
 }
 
 TEST_CASE("the engine runs on its own thread and can be stopped from another", "[daemon][run]") {
