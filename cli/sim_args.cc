@@ -27,7 +27,53 @@ void AddSimArgs(CLI::App* cmd, SimArgs* args) {
   cmd->add_option("--led-drift", args->drift,
                   "LED drift amplitude, relative gain over hours (default 0.015)")
       ->check(CLI::Range(0.0, 0.5));
+  cmd->add_option("--camera-tilt", args->camera_tilt_deg,
+                  "The hidden true camera's tilt off the nominal one, deg (random axis; default "
+                  "1 x --perturbation)")
+      ->check(CLI::Range(0.0, 30.0));
+  cmd->add_option("--camera-offset", args->camera_offset_mm,
+                  "The hidden true camera centre's distance from the nominal one, mm (random "
+                  "direction; default 0.3 x --perturbation)")
+      ->check(CLI::Range(0.0, 5.0));
+  cmd->add_option("--led-heights", args->led_heights,
+                  "Fin LED heights as fractions of the sensor height (default 0.12,0.32)")
+      ->delimiter(',')
+      ->check(CLI::Range(0.0, 1.0));
+  cmd->add_option("--led-radial", args->led_radial,
+                  "Fin LEDs' place across the fin, fraction of its half-width (default 0.55)")
+      ->check(CLI::Range(0.0, 1.0));
+  cmd->add_option("--led-intensity", args->led_intensity,
+                  "Red, green and blue LED intensities (default 1,1,10)")
+      ->delimiter(',')
+      ->expected(3)
+      ->check(CLI::Range(0.0, 1000.0));
+  cmd->add_option("--blue-leds", args->blue_leds, "LEDs on the blue ring (default 12)")
+      ->check(CLI::Range(1, 64));
+  cmd->add_option("--blue-ring-radius", args->blue_ring_radius,
+                  "The blue ring's radius, fraction of the base radius (default 0.35)")
+      ->check(CLI::Range(0.0, 1.0));
 }
+
+namespace {
+
+// The LED options of `args` over `lighting`; checked by the caller.
+void ApplyLedArgs(const SimArgs& args, LightingOptions* lighting) {
+  if (!args.led_heights.empty()) lighting->fin_led_heights = args.led_heights;
+  if (args.led_radial) lighting->fin_led_radial = *args.led_radial;
+  if (!args.led_intensity.empty()) {
+    if (args.led_intensity.size() != 3) {
+      throw std::invalid_argument("--led-intensity takes three values (red, green, blue), got " +
+                                  std::to_string(args.led_intensity.size()));
+    }
+    lighting->red_intensity = args.led_intensity[0];
+    lighting->green_intensity = args.led_intensity[1];
+    lighting->blue_intensity = args.led_intensity[2];
+  }
+  if (args.blue_leds) lighting->blue_ring_count = *args.blue_leds;
+  if (args.blue_ring_radius) lighting->blue_ring_radius = *args.blue_ring_radius;
+}
+
+}  // namespace
 
 RunConfig BaseRunConfig(const SimArgs& args) {
   if (args.config.empty()) return RunConfig{};
@@ -48,6 +94,9 @@ void ApplySimArgs(const SimArgs& args, VirtualRigOptions* options) {
   p.principal_point_px *= s;
   p.k1 *= s;
   p.k2 *= s;
+  if (args.camera_tilt_deg) p.rotation_deg = *args.camera_tilt_deg;
+  if (args.camera_offset_mm) p.translation_mm = *args.camera_offset_mm;
+  ApplyLedArgs(args, &options->camera.lighting);
   SensorModelOptions& sensor = options->camera.sensor;
   if (args.no_noise) sensor.noise = false;
   if (args.read_noise) sensor.read_noise = *args.read_noise;
@@ -56,9 +105,10 @@ void ApplySimArgs(const SimArgs& args, VirtualRigOptions* options) {
   try {
     p.Check();
     sensor.Check();
+    options->camera.lighting.Check();
   } catch (const std::invalid_argument& e) {
     throw std::invalid_argument(std::string(e.what()) + " (from --perturbation " +
-                                FormatFixed(s, 2) + " or the noise options)");
+                                FormatFixed(s, 2) + ", the camera, noise or LED options)");
   }
 }
 

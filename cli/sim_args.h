@@ -6,6 +6,7 @@
 
 #include <optional>
 #include <string>
+#include <vector>
 
 #include <CLI/CLI.hpp>
 
@@ -21,9 +22,23 @@ struct SimArgs {
   std::optional<double> read_noise;  // DN (sigma)
   std::optional<double> shot_gain;   // DN per electron
   std::optional<double> drift;       // LED drift amplitude (relative gain)
+  // The hidden true camera's orientation and centre off the nominal ones (deg, mm; random axis
+  // and direction from the seed), instead of perturbation x the defaults.
+  std::optional<double> camera_tilt_deg;
+  std::optional<double> camera_offset_mm;
+  // The LEDs (sim/lighting.h): fin LED heights (fractions of the sensor height), their radial
+  // place on the fin (fraction of its half-width), the intensities of the red, green and blue
+  // LEDs, the blue ring's LED count and radius (fraction of the base radius).
+  std::vector<double> led_heights;
+  std::optional<double> led_radial;
+  std::vector<double> led_intensity;
+  std::optional<int> blue_leds;
+  std::optional<double> blue_ring_radius;
 };
 
-// Adds --config, --perturbation, --no-noise, --read-noise, --shot-gain, --led-drift to `cmd`.
+// Adds --config, --perturbation, --camera-tilt, --camera-offset, --no-noise, --read-noise,
+// --shot-gain, --led-drift, --led-heights, --led-radial, --led-intensity, --blue-leds,
+// --blue-ring-radius to `cmd`.
 void AddSimArgs(CLI::App* cmd, SimArgs* args);
 
 // The run configuration the virtual rig is built from: the file's (its [machine] and [camera]

@@ -11,6 +11,7 @@
 
 #include "cli/sim_args.h"
 #include "daemon/calibration_inputs.h"
+#include "sim/tactile_camera.h"
 #include "storage/run_database.h"
 #include "tests/cli/run_gs360.h"
 
@@ -101,4 +102,48 @@ TEST_CASE("the virtual rig's knobs scale its hidden truth and noise, and refuse 
   args.perturbation = 25.0;
   VirtualRigOptions folded;
   CHECK_THROWS_WITH(cli::ApplySimArgs(args, &folded), Contains("--perturbation 25.00"));
+}
+
+TEST_CASE("the camera's tilt and offset and the LEDs' layout are set from the command line",
+          "[cli][demo]") {
+  cli::SimArgs args;
+  args.perturbation = 0.0;
+  args.camera_tilt_deg = 3.0;
+  args.camera_offset_mm = 0.5;
+  args.led_heights = {0.2, 0.5, 0.7};
+  args.led_radial = 0.4;
+  args.led_intensity = {2.0, 1.0, 5.0};
+  args.blue_leds = 6;
+  args.blue_ring_radius = 0.5;
+  VirtualRigOptions options;
+  cli::ApplySimArgs(args, &options);
+  CHECK(options.rig.perturbation.rotation_deg == 3.0);
+  CHECK(options.rig.perturbation.translation_mm == 0.5);
+  CHECK(options.rig.perturbation.focal_relative == 0.0);  // the rest scaled by --perturbation 0
+  const LightingOptions& l = options.camera.lighting;
+  CHECK(l.fin_led_heights == std::vector<double>{0.2, 0.5, 0.7});
+  CHECK(l.fin_led_radial == 0.4);
+  CHECK(l.red_intensity == 2.0);
+  CHECK(l.blue_intensity == 5.0);
+  CHECK(l.blue_ring_count == 6);
+  CHECK(l.blue_ring_radius == 0.5);
+
+  // The rig they make is another one: its frames differ from the default rig's.
+  options.camera.sensor.noise = false;
+  VirtualRigOptions plain;
+  plain.rig.perturbation = TruePerturbationOptions::None();
+  plain.camera.sensor.noise = false;
+  TactileCamera changed(std::make_shared<const SimRig>(options.rig), options.camera);
+  TactileCamera reference(std::make_shared<const SimRig>(plain.rig), plain.camera);
+  const cv::Mat a = changed.RenderReference(0), b = reference.RenderReference(0);
+  CHECK(cv::norm(a, b, cv::NORM_L1) / static_cast<double>(a.total()) > 5.0);
+
+  // Wrong values name the option.
+  args = {};
+  args.led_intensity = {1.0, 2.0};
+  VirtualRigOptions bad;
+  CHECK_THROWS_WITH(cli::ApplySimArgs(args, &bad), Contains("--led-intensity"));
+  args = {};
+  args.led_heights = {0.0};
+  CHECK_THROWS_WITH(cli::ApplySimArgs(args, &bad), Contains("fin_led_heights[0]"));
 }
