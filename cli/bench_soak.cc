@@ -29,10 +29,10 @@ namespace {
 using Json = nlohmann::json;
 
 struct BenchSoakArgs {
-  int candidates = 4000;  // about half are kept on the default cylinder
+  int candidates = 2800;  // about 70 % are probed on the default cylinder: ~2,000 probes
   double fault_every = 50.0;
-  std::vector<std::string> faults = {"drop",   "garble", "garble-reply", "stall",
-                                     "unplug", "reset",  "alarm",        "lost-position"};
+  std::vector<std::string> faults = {"drop",  "garble", "garble-reply",  "stall",      "unplug",
+                                     "reset", "alarm",  "lost-position", "power-cycle"};
   std::uint64_t seed = 1;
   std::string dir;
 };
@@ -56,6 +56,8 @@ void Inject(VirtualRig& rig, const std::string& kind, std::mt19937_64& rng) {
     cnc.ResetDuringNextDwell();
   } else if (kind == "alarm") {
     cnc.RaiseAlarmDuringNextMove(1, 0.5);  // a hard limit: the run fails and is resumed
+  } else if (kind == "power-cycle") {
+    cnc.PowerCycle();  // boots in Alarm at MPos 0,0,0: the run asks, the user confirms, it homes
   } else if (kind == "lost-position") {
     cnc.LosePositionOnReset(true);
     cnc.RaiseAlarmDuringNextMove(3, 0.3);
@@ -204,14 +206,14 @@ void RegisterSoakBench(CLI::App& bench, CommandContext& ctx) {
       "A long acquisition on the virtual rig with a fault every ~N probes, resumed after "
       "each stop; checks every probe is captured exactly once");
   cmd->add_option("--candidates", a.candidates,
-                  "Candidate points (about half are probed on the default cylinder)")
+                  "Candidate points (about 70 % are probed on the default cylinder)")
       ->check(CLI::Range(10, 100000));
   cmd->add_option("--fault-every", a.fault_every, "Mean probes between faults (uniform 0.5-1.5x)")
       ->check(CLI::Range(2.0, 100000.0));
   cmd->add_option("--faults", a.faults, "Fault kinds to draw from (comma-separated)")
       ->delimiter(',')
       ->check(CLI::IsMember({"drop", "garble", "garble-reply", "stall", "unplug", "reset", "alarm",
-                             "lost-position"}));
+                             "lost-position", "power-cycle"}));
   cmd->add_option("--seed", a.seed, "Seed of the rig and of the faults' kinds and times");
   cmd->add_option("--dir", a.dir, "Keep the database and logs here (default: a temporary folder)");
   cmd->callback([&ctx] { ctx.exit_code = RunBenchSoak(a, ctx); });

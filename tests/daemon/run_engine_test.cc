@@ -3,6 +3,7 @@
 
 #include <catch2/catch.hpp>
 
+#include <fstream>
 #include <set>
 #include <thread>
 
@@ -268,6 +269,53 @@ TEST_CASE("storage: a full disk stops the run naming it and the run resumes once
   }
   CHECK(r.outcome == RunOutcome::kDone);
   CHECK(r.counts.planned == 0);
+  CHECK(r.counts.captured > before);
+  CheckCommitted(f, run_id);
+}
+
+TEST_CASE("storage: a corrupt database page is an error naming the file and a backup resumes",
+          "[daemon][storage]") {
+  RigFixture f("corrupt", 40, 0.0);
+  std::int64_t run_id = 0;
+  {
+    RunEngine engine(f.db);
+    run_id = engine.CreateRun(f.config);
+    StopAfter(engine, run_id, 5);
+  }
+  const std::int64_t before = RunDatabase(f.db).CountProbes(run_id).captured;
+  const std::filesystem::path backup = f.dir / "backup.db";
+  std::filesystem::copy_file(f.db, backup);
+  {
+    // The schema's page (the first, after SQLite's 100-byte header) overwritten with garbage.
+    std::fstream file(f.db, std::ios::in | std::ios::out | std::ios::binary);
+    file.seekp(100);
+    const std::string garbage(4000, '\xa5');
+    file.write(garbage.data(), static_cast<std::streamsize>(garbage.size()));
+  }
+  std::string error;
+  try {
+    RunEngine engine(f.db);
+    const RunReport r = engine.Execute(run_id);
+    error = r.message;
+    CHECK(r.outcome != RunOutcome::kDone);
+  } catch (const std::exception& e) {
+    error = e.what();
+  }
+  INFO(error);
+  CHECK_THAT(error, Catch::Contains(f.db.string()));
+  CHECK_THAT(error, Catch::Contains("malformed") || Catch::Contains("corrupt") ||
+                        Catch::Contains("not a database"));
+  // The user restores the backup: the run resumes from it and finishes.
+  std::filesystem::copy_file(backup, f.db, std::filesystem::copy_options::overwrite_existing);
+  RunEngine engine(f.db);
+  SessionOverrides overrides;
+  RunReport r;
+  for (int attempt = 0; attempt < 3; ++attempt) {
+    overrides.confirm = RunDatabase(f.db).GetRun(run_id)->awaiting;
+    r = engine.Execute(run_id, overrides);
+    if (r.outcome == RunOutcome::kDone) break;
+  }
+  CHECK(r.outcome == RunOutcome::kDone);
   CHECK(r.counts.captured > before);
   CheckCommitted(f, run_id);
 }
