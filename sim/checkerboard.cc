@@ -269,4 +269,14 @@ std::vector<cv::Mat> RenderCheckerboardSet(const CheckerboardOptions& board,
   return images;
 }
 
+FisheyeIntrinsics PerturbedLens160() {
+  FisheyeIntrinsics in = FisheyeIntrinsics::Default160();
+  in.fx *= 1.012;
+  in.fy = in.fx * 0.997;
+  in.cx += 2.4;
+  in.cy -= 1.8;
+  in.k = {0.011, -0.0035, 0.0, 0.0};
+  return in;
+}
+
 }  // namespace gs360

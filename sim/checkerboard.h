@@ -80,4 +80,9 @@ std::vector<cv::Mat> RenderCheckerboardSet(const CheckerboardOptions& board,
                                            const CheckerboardPoseOptions& poses,
                                            std::uint64_t seed);
 
+// The nominal 160-degree lens (FisheyeIntrinsics::Default160) about as far off as the virtual
+// rig's true lens is from it: fx 1.2 % longer, fy 0.3 % shorter than fx, the principal point
+// (2.4, -1.8) px away, k1 0.011, k2 -0.0035. What lens calibration tests recover.
+FisheyeIntrinsics PerturbedLens160();
+
 }  // namespace gs360

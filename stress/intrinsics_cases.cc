@@ -19,17 +19,6 @@ namespace {
 
 constexpr double kRadToDeg = 180.0 / std::numbers::pi;
 
-// A lens about as far from the nominal one as the virtual rig's true lens.
-FisheyeIntrinsics TrueLens() {
-  FisheyeIntrinsics in = FisheyeIntrinsics::Default160();
-  in.fx *= 1.012;
-  in.fy = in.fx * 0.997;
-  in.cx += 2.4;
-  in.cy -= 1.8;
-  in.k = {0.011, -0.0035, 0.0, 0.0};
-  return in;
-}
-
 // `count` boards through `truth`, blurred by a Gaussian of `blur_px` (a real lens's spot; 0 none).
 std::vector<cv::Mat> Boards(const FisheyeIntrinsics& truth, int count, std::uint64_t seed,
                             double blur_px) {
@@ -47,7 +36,7 @@ StressCase NominalOff(double factor) {
       Format("nominal focal length %s 20 %%, 20 boards", factor > 1.0 ? "over" : "under");
   return {"intrinsics", name, "fx, fy, cx, cy within 0.5 px of the truth",
           [factor](const StressContext& c, std::string* observed) {
-            const FisheyeIntrinsics truth = TrueLens();
+            const FisheyeIntrinsics truth = PerturbedLens160();
             FisheyeIntrinsics nominal = FisheyeIntrinsics::Default160();
             nominal.fx *= factor;
             nominal.fy *= factor;
@@ -71,7 +60,7 @@ StressCase CornerWindow() {
   return {"intrinsics", "corner refinement window 2-8 on boards blurred 0, 1 and 2 px",
           "the default window has the smallest worst-case ray error",
           [](const StressContext& c, std::string* observed) {
-            const FisheyeIntrinsics truth = TrueLens();
+            const FisheyeIntrinsics truth = PerturbedLens160();
             const std::vector<int> windows = {2, 3, 4, 5, 8};
             std::vector<double> worst(windows.size(), 0.0);
             for (double blur : {0.0, 1.0, 2.0}) {

@@ -15,17 +15,6 @@ namespace {
 
 constexpr double kRadToDeg = 180.0 / std::numbers::pi;
 
-// A lens that differs from the nominal one about as much as the simulator's true lens does.
-FisheyeIntrinsics PerturbedLens() {
-  FisheyeIntrinsics in = FisheyeIntrinsics::Default160();
-  in.fx *= 1.012;
-  in.fy = in.fx * 0.997;
-  in.cx += 2.4;
-  in.cy -= 1.8;
-  in.k = {0.011, -0.0035, 0.0, 0.0};
-  return in;
-}
-
 std::vector<cv::Mat> RenderBoards(const FisheyeIntrinsics& truth, int count, std::uint64_t seed) {
   CheckerboardPoseOptions pose_options;
   pose_options.count = count;
@@ -33,7 +22,7 @@ std::vector<cv::Mat> RenderBoards(const FisheyeIntrinsics& truth, int count, std
 }
 
 TEST_CASE("CalibrateIntrinsics recovers a perturbed fisheye lens", "[intrinsics]") {
-  const FisheyeIntrinsics truth = PerturbedLens();
+  const FisheyeIntrinsics truth = PerturbedLens160();
   const std::vector<cv::Mat> images = RenderBoards(truth, 20, 7);
   const IntrinsicsResult result =
       CalibrateIntrinsics(images, FisheyeIntrinsics::Default160(), IntrinsicsOptions{});
@@ -66,7 +55,7 @@ TEST_CASE("CalibrateIntrinsics recovers a perturbed fisheye lens", "[intrinsics]
 }
 
 TEST_CASE("CalibrateIntrinsics rejects too few images", "[intrinsics]") {
-  const FisheyeIntrinsics truth = PerturbedLens();
+  const FisheyeIntrinsics truth = PerturbedLens160();
   const std::vector<cv::Mat> images = RenderBoards(truth, 5, 3);
   try {
     CalibrateIntrinsics(images, FisheyeIntrinsics::Default160(), IntrinsicsOptions{});
@@ -87,7 +76,7 @@ TEST_CASE("CalibrateIntrinsics rejects blank images", "[intrinsics]") {
 }
 
 TEST_CASE("CalibrateIntrinsics rejects boards only at the centre of the field", "[intrinsics]") {
-  const FisheyeIntrinsics truth = PerturbedLens();
+  const FisheyeIntrinsics truth = PerturbedLens160();
   CheckerboardOptions board;
   CheckerboardPoseOptions pose_options;
   pose_options.count = 10;
@@ -135,7 +124,7 @@ std::vector<std::uint8_t> Encoded(const cv::Mat& image, const std::string& ext) 
 }  // namespace
 
 TEST_CASE("ImageFileProblem: truncated PNG and JPEG files are caught alike", "[intrinsics]") {
-  const cv::Mat board = RenderBoards(PerturbedLens(), 1, 5)[0];
+  const cv::Mat board = RenderBoards(PerturbedLens160(), 1, 5)[0];
   for (const std::string ext : {".png", ".jpg"}) {
     INFO(ext);
     std::vector<std::uint8_t> bytes = Encoded(board, ext);
@@ -150,7 +139,7 @@ TEST_CASE("ImageFileProblem: truncated PNG and JPEG files are caught alike", "[i
 }
 
 TEST_CASE("CalibrateIntrinsics rejects an undecodable image and goes on", "[intrinsics]") {
-  std::vector<cv::Mat> images = RenderBoards(PerturbedLens(), 14, 7);
+  std::vector<cv::Mat> images = RenderBoards(PerturbedLens160(), 14, 7);
   images[3] = cv::Mat();
   const IntrinsicsResult result =
       CalibrateIntrinsics(images, FisheyeIntrinsics::Default160(), IntrinsicsOptions{});
@@ -166,7 +155,7 @@ namespace gs360 {
 
 TEST_CASE("CalibrateIntrinsics says when the nominal lens is far off, not what the images lack",
           "[intrinsics]") {
-  const FisheyeIntrinsics truth = PerturbedLens();
+  const FisheyeIntrinsics truth = PerturbedLens160();
   const std::vector<cv::Mat> images = RenderBoards(truth, 12, 7);
   for (const double factor : {0.5, 2.0, 3.0}) {
     INFO("nominal focal length x" << factor);

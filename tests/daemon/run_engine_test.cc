@@ -229,6 +229,23 @@ TEST_CASE("fault: an abort resets the controller and loses its position", "[daem
 
 // ---- storage faults: a clear error, the run stops resumable, nothing committed is lost ----
 
+namespace {
+
+// Resumes the run with a fresh engine as a user would (confirming what it asks about), at most
+// three times; the last session's report.
+RunReport ResumeUntilDone(RigFixture& f, std::int64_t run_id) {
+  RunEngine engine(f.db);
+  RunReport r;
+  for (int attempt = 0; attempt < 3 && r.outcome != RunOutcome::kDone; ++attempt) {
+    SessionOverrides overrides;
+    overrides.confirm = RunDatabase(f.db).GetRun(run_id)->awaiting;
+    r = engine.Execute(run_id, overrides);
+  }
+  return r;
+}
+
+}  // namespace
+
 TEST_CASE("storage: a full disk stops the run naming it and the run resumes once there is room",
           "[daemon][storage]") {
   RigFixture f("diskfull", 60, 0.0);
@@ -259,14 +276,7 @@ TEST_CASE("storage: a full disk stops the run naming it and the run resumes once
   CHECK(before > 0);
   CheckCommitted(f, run_id);
   // Room again: the run resumes where it stopped and finishes.
-  RunEngine roomy(f.db);
-  SessionOverrides overrides;
-  RunReport r;
-  for (int attempt = 0; attempt < 3; ++attempt) {
-    overrides.confirm = RunDatabase(f.db).GetRun(run_id)->awaiting;
-    r = roomy.Execute(run_id, overrides);
-    if (r.outcome == RunOutcome::kDone) break;
-  }
+  const RunReport r = ResumeUntilDone(f, run_id);
   CHECK(r.outcome == RunOutcome::kDone);
   CHECK(r.counts.planned == 0);
   CHECK(r.counts.captured > before);
@@ -307,14 +317,7 @@ TEST_CASE("storage: a corrupt database page is an error naming the file and a ba
                         Catch::Contains("not a database"));
   // The user restores the backup: the run resumes from it and finishes.
   std::filesystem::copy_file(backup, f.db, std::filesystem::copy_options::overwrite_existing);
-  RunEngine engine(f.db);
-  SessionOverrides overrides;
-  RunReport r;
-  for (int attempt = 0; attempt < 3; ++attempt) {
-    overrides.confirm = RunDatabase(f.db).GetRun(run_id)->awaiting;
-    r = engine.Execute(run_id, overrides);
-    if (r.outcome == RunOutcome::kDone) break;
-  }
+  const RunReport r = ResumeUntilDone(f, run_id);
   CHECK(r.outcome == RunOutcome::kDone);
   CHECK(r.counts.captured > before);
   CheckCommitted(f, run_id);
