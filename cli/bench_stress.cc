@@ -37,10 +37,23 @@ std::shared_ptr<const ModelBundle> LoadModel(const BenchStressArgs& a, bool quie
   return std::make_shared<const ModelBundle>(ReadModelBundle(path));
 }
 
+// Whether the cases `only` selects include one that runs frames through a model (the frame,
+// integration and MLP stages, or a case of theirs named alone).
+bool NeedsModel(const std::vector<std::string>& only) {
+  if (only.empty()) return true;
+  for (const StressCase& c : StressCases()) {
+    if (c.stage != "frames" && c.stage != "integration" && c.stage != "mlp") continue;
+    for (const std::string& name : only) {
+      if (name == c.stage || name == c.name) return true;
+    }
+  }
+  return false;
+}
+
 int RunBenchStress(const BenchStressArgs& a, const CommandContext& ctx) {
   StressContext context;
   context.seed = a.seed;
-  context.model = LoadModel(a, ctx.json);
+  if (NeedsModel(a.only)) context.model = LoadModel(a, ctx.json);
   const bool table = !ctx.json && !a.markdown;
   if (table) std::printf("%-12s %-64s %6s %8s\n", "stage", "case", "result", "seconds");
   const auto outcomes = RunStress(context, a.only, [&](const StressOutcome& o) {

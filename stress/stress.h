@@ -35,8 +35,8 @@ struct StressOutcome {
 
 struct StressContext {
   std::uint64_t seed = 1;
-  // A model calibrated on the default virtual rig (cli/sim_model.h), for the cases that run
-  // frames through the Reconstructor; without one those cases fail, saying so.
+  // A model calibrated on the default virtual rig (cli/sim_model.h), for the cases of the
+  // frames, integration and mlp stages; without one those cases fail, saying so.
   std::shared_ptr<const ModelBundle> model;
   int threads = 2;
   void Check() const;  // throws std::invalid_argument naming the field
