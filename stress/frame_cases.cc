@@ -100,9 +100,10 @@ cv::Mat Noisy(const cv::Mat& reference, int seed, double sigma) {
   return out;
 }
 
-// Sensor noise on a frame without contact, added to the model's reference (itself a mean of
-// frames, nearly noise-free): the virtual rig's camera has about 3 DN (read noise 1 DN, shot
-// noise about 2.7 DN at mid-grey).
+// Sensor noise on a frame without contact, added to the model's own reference, so that the
+// difference holds exactly this noise. On the virtual rig a live frame differs from the
+// reference by about 3.5 DN: the frame's 3 DN (read noise 1 DN, shot noise about 2.7 DN at
+// mid-grey) and the reference's 1.7 DN (a mean of 3 frames).
 StressCase Noise(double sigma, bool must_hold) {
   return {"frames", Format("no contact, sensor noise of %.0f DN per pixel", sigma),
           must_hold ? "no contact reported, no depth beyond 0.05 mm"
