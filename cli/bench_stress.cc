@@ -50,7 +50,26 @@ bool NeedsModel(const std::vector<std::string>& only) {
   return false;
 }
 
+// The first name in `only` that is neither a stage nor a case, or "" when all are known.
+std::string UnknownName(const std::vector<std::string>& only) {
+  const std::vector<StressCase> cases = StressCases();
+  for (const std::string& name : only) {
+    bool known = false;
+    for (const StressCase& c : cases) known = known || name == c.stage || name == c.name;
+    if (!known) return name;
+  }
+  return {};
+}
+
 int RunBenchStress(const BenchStressArgs& a, const CommandContext& ctx) {
+  if (const std::string unknown = UnknownName(a.only); !unknown.empty()) {
+    std::fprintf(stderr,
+                 "gs360 bench stress: --only: no stage or case is named '%s' (stages: pose, "
+                 "intrinsics, frames, integration, geometry, mlp; cases: as the table names "
+                 "them)\n",
+                 unknown.c_str());
+    return 2;
+  }
   StressContext context;
   context.seed = a.seed;
   if (NeedsModel(a.only)) context.model = LoadModel(a, ctx.json);
@@ -66,10 +85,6 @@ int RunBenchStress(const BenchStressArgs& a, const CommandContext& ctx) {
     std::printf("    %s\n", o.observed.c_str());
     std::fflush(stdout);
   });
-  if (outcomes.empty()) {
-    std::fprintf(stderr, "gs360 bench stress: no stage or case is named as in --only\n");
-    return 2;
-  }
   int failed = 0;
   for (const StressOutcome& o : outcomes) failed += o.passed ? 0 : 1;
   if (ctx.json) {
@@ -77,8 +92,8 @@ int RunBenchStress(const BenchStressArgs& a, const CommandContext& ctx) {
   } else if (a.markdown) {
     std::printf("%s", StressOutcomesToMarkdown(outcomes).c_str());
   } else {
-    std::printf("%zu cases: %zu passed, %d failed\n", outcomes.size(), outcomes.size() - failed,
-                failed);
+    std::printf("%zu case%s: %zu passed, %d failed\n", outcomes.size(),
+                outcomes.size() == 1 ? "" : "s", outcomes.size() - failed, failed);
   }
   return failed == 0 ? 0 : 1;
 }
