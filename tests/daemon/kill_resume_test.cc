@@ -15,6 +15,7 @@
 #include <random>
 #include <set>
 #include <thread>
+#include <vector>
 
 #include "cli/daemon_client.h"
 #include "daemon_fixture.h"
@@ -130,6 +131,110 @@ TEST_CASE(
   CHECK(truth.off_target == 0);
   CHECK(truth.unverified == 0);
   CHECK(truth.max_error_mm < 0.005);
+}
+
+namespace {
+
+// Starts a calibration with `body` and waits until it ends (any state but running); its view.
+Json CalibrateToTheEnd(cli::DaemonClient& client, const Json& body) {
+  client.Post("/api/v1/runs/1/calibrate", body);
+  Json view;
+  const auto ended = [&] {
+    view = client.Get("/api/v1/runs/1/calibration");
+    return view["state"] != "running";
+  };
+  if (!test::WaitUntil(ended, std::chrono::minutes(5))) FAIL("timed out; " << view.dump());
+  return view;
+}
+
+}  // namespace
+
+TEST_CASE(
+    "gs360d SIGKILLed during calibrations: calibrated again, the results equal an "
+    "uninterrupted calibration's",
+    "[daemon][kill]") {
+  test::RigFixture f("killcal", 150, 0.0);
+  const auto data = f.dir / "data";
+  const auto db_path = data / "gs360.db";
+  {
+    auto daemon = test::StartDaemonProcess(f);
+    cli::DaemonClient client(daemon->url(), "");
+    client.Post("/api/v1/runs", {{"name", "killcal"}, {"probes", 150}});
+    client.Post("/api/v1/runs/1/start");
+    WaitFor(client, 1, [](const Json& r) { return r["state"] == "done"; });
+    REQUIRE(daemon->Stop() == 0);
+  }
+  // The database as the acquisition left it: the file and SQLite's log beside it (gs360d's last
+  // transactions may still be there, not yet copied into the file).
+  const auto pristine = f.dir / "pristine";
+  std::filesystem::create_directories(pristine);
+  const auto copy = [](const std::filesystem::path& from, const std::filesystem::path& to) {
+    for (const char* suffix : {"", "-wal"}) {
+      std::filesystem::remove(to.string() + suffix);
+      if (std::filesystem::exists(from.string() + suffix)) {
+        std::filesystem::copy_file(from.string() + suffix, to.string() + suffix);
+      }
+    }
+    std::filesystem::remove(to.string() + "-shm");
+  };
+  copy(db_path, pristine / "gs360.db");
+  // Small and short, so that the rounds land in different stages within seconds.
+  const Json body = {{"max_epochs", 6}, {"hidden", {24, 24}}, {"max_validation_probes", 20}};
+
+  Json uninterrupted;
+  {
+    auto daemon = test::StartDaemonProcess(f);
+    cli::DaemonClient client(daemon->url(), "");
+    uninterrupted = CalibrateToTheEnd(client, body);
+    REQUIRE(daemon->Stop() == 0);
+  }
+  REQUIRE(uninterrupted["state"] == "done");
+
+  // The same acquisition again, calibrated with gs360d killed in the middle of three stages.
+  copy(pristine / "gs360.db", db_path);
+  // By default one kill in each of three stages; GS360_KILL_SEED and GS360_KILL_ROUNDS replay
+  // others (scripts/kill_loop.sh --calibration): each round a random stage, and a random moment
+  // after it starts.
+  std::vector<std::string> stages = {"pose", "dataset", "train"};
+  std::vector<int> delays_ms = {0, 0, 0};
+  if (const char* rounds = std::getenv("GS360_KILL_ROUNDS")) {
+    const char* seed = std::getenv("GS360_KILL_SEED");
+    std::mt19937 rng(seed ? static_cast<unsigned>(std::stoul(seed)) : 2026u);
+    const std::vector<std::string> all = {"impressions", "pose",  "surface_map", "render",
+                                          "dataset",     "train", "validate"};
+    stages.clear();
+    delays_ms.clear();
+    for (int i = 0; i < std::stoi(rounds); ++i) {
+      stages.push_back(all[rng() % all.size()]);
+      delays_ms.push_back(static_cast<int>(rng() % 300));
+    }
+  }
+  for (std::size_t round = 0; round < stages.size(); ++round) {
+    auto daemon = test::StartDaemonProcess(f);
+    cli::DaemonClient client(daemon->url(), "");
+    client.Post("/api/v1/runs/1/calibrate", body);
+    Json view;
+    const auto reached = [&] {
+      view = client.Get("/api/v1/runs/1/calibration");
+      return view["stage"] == stages[round] || view["state"] != "running";
+    };
+    REQUIRE(test::WaitUntil(reached, std::chrono::minutes(5)));
+    std::this_thread::sleep_for(std::chrono::milliseconds(delays_ms[round]));
+    INFO("round " << round << ", killed at " << view.dump().substr(0, 300));
+    daemon->Kill();
+    CHECK(ReadOnly(db_path).IntegrityCheck().empty());
+  }
+  auto daemon = test::StartDaemonProcess(f);
+  cli::DaemonClient client(daemon->url(), "");
+  // Killed while it ran, or (a round's moment came after the last stage) already done.
+  const std::string last = client.Get("/api/v1/runs/1/calibration")["state"];
+  CHECK((last == "interrupted" || last == "done"));
+  const Json resumed = CalibrateToTheEnd(client, body);
+  REQUIRE(daemon->Stop() == 0);
+  REQUIRE(resumed["state"] == "done");
+  // Bit-identical stages give identical figures, to the last digit of every band.
+  CHECK(resumed["validation"]["results"] == uninterrupted["validation"]["results"]);
+  CHECK(resumed["targets"] == uninterrupted["targets"]);
 }
 
 TEST_CASE("gs360d on SIGTERM finishes the current probe, retracts, commits and exits 0",
