@@ -66,7 +66,7 @@ void Inject(VirtualRig& rig, const std::string& kind, std::mt19937_64& rng) {
 
 struct SoakResult {
   std::map<std::string, int> injected;
-  int sessions = 0, recoveries = 0;
+  int faults = 0, sessions = 0, recoveries = 0;
   std::int64_t captured = 0, planned_left = 0, failed_attempts = 0;
   int duplicate_frames = 0, frames = 0, off_target = 0, unverified = 0;
   std::vector<std::string> integrity;
@@ -137,13 +137,10 @@ SoakResult Soak(const BenchSoakArgs& a, const std::filesystem::path& dir) {
     const std::string& kind = a.faults[rng() % a.faults.size()];
     Inject(*setup.rig, kind, rng);
     ++out.injected[kind];
+    ++out.faults;
     next = static_cast<double>(p.counts.captured) + spacing(rng);
     std::fprintf(stderr, "\rsoak: %lld probes, %d faults",
-                 static_cast<long long>(p.counts.captured), static_cast<int>([&] {
-                   int n = 0;
-                   for (const auto& [k, v] : out.injected) n += v;
-                   return n;
-                 }()));
+                 static_cast<long long>(p.counts.captured), out.faults);
   });
   const auto start = std::chrono::steady_clock::now();
   RunToTheEnd(engine, run_id, db_path, 1000, &out);
@@ -159,8 +156,7 @@ int RunBenchSoak(const BenchSoakArgs& a, const CommandContext& ctx) {
                                                   : std::filesystem::path(a.dir);
   std::filesystem::create_directories(dir);
   const SoakResult r = Soak(a, dir);
-  int faults = 0;
-  for (const auto& [k, v] : r.injected) faults += v;
+  const int faults = r.faults;
   const Json result{{"captured", r.captured},
                     {"planned_left", r.planned_left},
                     {"press_frames", r.frames},
