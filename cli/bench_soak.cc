@@ -3,7 +3,6 @@
 // end every probe must be captured exactly once, at its press point, and the database intact.
 // Exit code 0 when that holds, 1 when it does not.
 
-#include <atomic>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>

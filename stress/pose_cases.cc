@@ -77,10 +77,10 @@ PoseOptions FastOptions() {
   return o;
 }
 
-struct PoseError2 {
+struct PoseOffset {
   double rotation_deg = 0.0, centre_mm = 0.0;
 };
-PoseError2 Compare(const Rigid3d& a, const Rigid3d& b) {
+PoseOffset Compare(const Rigid3d& a, const Rigid3d& b) {
   // Camera centres in the sensor frame: the translation part that a user would measure.
   const Eigen::Vector3d ca = a.Inverse().translation, cb = b.Inverse().translation;
   return {RotationDifferenceRad(a, b) / kDeg, (ca - cb).norm()};
@@ -92,7 +92,7 @@ bool Within(PoseScenario& s, const std::vector<PoseObservation>& obs, const Pose
             double max_deg, double max_mm, bool error_ok, std::string* observed) {
   try {
     const PoseResult r = EstimateCamFromSensor(s.camera, obs, s.nominal, options);
-    const PoseError2 e = Compare(r.cam_from_sensor, s.truth);
+    const PoseOffset e = Compare(r.cam_from_sensor, s.truth);
     *observed = Format(
         "%zu impressions: %.4f deg, %.4f mm off; condition %.3g, rms %.2f px, "
         "%d outliers, %d oblique left out",
@@ -108,7 +108,7 @@ bool ErrorMentions(PoseScenario& s, const std::vector<PoseObservation>& obs,
                    const PoseOptions& options, const std::string& needle, std::string* observed) {
   try {
     const PoseResult r = EstimateCamFromSensor(s.camera, obs, s.nominal, options);
-    const PoseError2 e = Compare(r.cam_from_sensor, s.truth);
+    const PoseOffset e = Compare(r.cam_from_sensor, s.truth);
     *observed = Format("no error: %.4f deg, %.4f mm off, condition %.3g", e.rotation_deg,
                        e.centre_mm, r.condition);
     return false;

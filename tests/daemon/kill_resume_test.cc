@@ -147,6 +147,60 @@ Json CalibrateToTheEnd(cli::DaemonClient& client, const Json& body) {
   return view;
 }
 
+// Copies a database with SQLite's log beside it (gs360d's last transactions may still be there,
+// not yet copied into the file); a stale shared-memory index at `to` is removed.
+void CopyDatabase(const std::filesystem::path& from, const std::filesystem::path& to) {
+  for (const char* suffix : {"", "-wal"}) {
+    std::filesystem::remove(to.string() + suffix);
+    if (std::filesystem::exists(from.string() + suffix)) {
+      std::filesystem::copy_file(from.string() + suffix, to.string() + suffix);
+    }
+  }
+  std::filesystem::remove(to.string() + "-shm");
+}
+
+struct CalibrationKill {
+  std::string stage;  // killed once this stage runs
+  int delay_ms = 0;   // ... and this long after
+};
+
+// By default one kill in each of three stages; GS360_KILL_SEED and GS360_KILL_ROUNDS replay
+// others (scripts/kill_loop.sh --calibration): each round a random stage, and a random moment
+// after it starts.
+std::vector<CalibrationKill> CalibrationKills() {
+  const char* rounds = std::getenv("GS360_KILL_ROUNDS");
+  if (!rounds) return {{"pose", 0}, {"dataset", 0}, {"train", 0}};
+  const char* seed = std::getenv("GS360_KILL_SEED");
+  std::mt19937 rng(seed ? static_cast<unsigned>(std::stoul(seed)) : 2026u);
+  const std::vector<std::string> all = {"impressions", "pose",  "surface_map", "render",
+                                        "dataset",     "train", "validate"};
+  std::vector<CalibrationKill> kills;
+  for (int i = 0; i < std::stoi(rounds); ++i) {
+    const std::string& stage = all[rng() % all.size()];
+    kills.push_back({stage, static_cast<int>(rng() % 300)});
+  }
+  return kills;
+}
+
+// Starts a calibration with `body`, waits until `kill.stage` runs (or the calibration ended),
+// waits kill.delay_ms more and SIGKILLs gs360d; the database must stay sound.
+void CalibrateAndKill(const test::RigFixture& f, const Json& body, const CalibrationKill& kill,
+                      const std::filesystem::path& db_path) {
+  auto daemon = test::StartDaemonProcess(f);
+  cli::DaemonClient client(daemon->url(), "");
+  client.Post("/api/v1/runs/1/calibrate", body);
+  Json view;
+  const auto reached = [&] {
+    view = client.Get("/api/v1/runs/1/calibration");
+    return view["stage"] == kill.stage || view["state"] != "running";
+  };
+  REQUIRE(test::WaitUntil(reached, std::chrono::minutes(5)));
+  std::this_thread::sleep_for(std::chrono::milliseconds(kill.delay_ms));
+  INFO("killed at " << view.dump().substr(0, 300));
+  daemon->Kill();
+  CHECK(ReadOnly(db_path).IntegrityCheck().empty());
+}
+
 }  // namespace
 
 TEST_CASE(
@@ -164,20 +218,10 @@ TEST_CASE(
     WaitFor(client, 1, [](const Json& r) { return r["state"] == "done"; });
     REQUIRE(daemon->Stop() == 0);
   }
-  // The database as the acquisition left it: the file and SQLite's log beside it (gs360d's last
-  // transactions may still be there, not yet copied into the file).
+  // The database as the acquisition left it.
   const auto pristine = f.dir / "pristine";
   std::filesystem::create_directories(pristine);
-  const auto copy = [](const std::filesystem::path& from, const std::filesystem::path& to) {
-    for (const char* suffix : {"", "-wal"}) {
-      std::filesystem::remove(to.string() + suffix);
-      if (std::filesystem::exists(from.string() + suffix)) {
-        std::filesystem::copy_file(from.string() + suffix, to.string() + suffix);
-      }
-    }
-    std::filesystem::remove(to.string() + "-shm");
-  };
-  copy(db_path, pristine / "gs360.db");
+  CopyDatabase(db_path, pristine / "gs360.db");
   // Small and short, so that the rounds land in different stages within seconds.
   const Json body = {{"max_epochs", 6}, {"hidden", {24, 24}}, {"max_validation_probes", 20}};
 
@@ -190,40 +234,9 @@ TEST_CASE(
   }
   REQUIRE(uninterrupted["state"] == "done");
 
-  // The same acquisition again, calibrated with gs360d killed in the middle of three stages.
-  copy(pristine / "gs360.db", db_path);
-  // By default one kill in each of three stages; GS360_KILL_SEED and GS360_KILL_ROUNDS replay
-  // others (scripts/kill_loop.sh --calibration): each round a random stage, and a random moment
-  // after it starts.
-  std::vector<std::string> stages = {"pose", "dataset", "train"};
-  std::vector<int> delays_ms = {0, 0, 0};
-  if (const char* rounds = std::getenv("GS360_KILL_ROUNDS")) {
-    const char* seed = std::getenv("GS360_KILL_SEED");
-    std::mt19937 rng(seed ? static_cast<unsigned>(std::stoul(seed)) : 2026u);
-    const std::vector<std::string> all = {"impressions", "pose",  "surface_map", "render",
-                                          "dataset",     "train", "validate"};
-    stages.clear();
-    delays_ms.clear();
-    for (int i = 0; i < std::stoi(rounds); ++i) {
-      stages.push_back(all[rng() % all.size()]);
-      delays_ms.push_back(static_cast<int>(rng() % 300));
-    }
-  }
-  for (std::size_t round = 0; round < stages.size(); ++round) {
-    auto daemon = test::StartDaemonProcess(f);
-    cli::DaemonClient client(daemon->url(), "");
-    client.Post("/api/v1/runs/1/calibrate", body);
-    Json view;
-    const auto reached = [&] {
-      view = client.Get("/api/v1/runs/1/calibration");
-      return view["stage"] == stages[round] || view["state"] != "running";
-    };
-    REQUIRE(test::WaitUntil(reached, std::chrono::minutes(5)));
-    std::this_thread::sleep_for(std::chrono::milliseconds(delays_ms[round]));
-    INFO("round " << round << ", killed at " << view.dump().substr(0, 300));
-    daemon->Kill();
-    CHECK(ReadOnly(db_path).IntegrityCheck().empty());
-  }
+  // The same acquisition again, calibrated with gs360d killed in the middle of stages.
+  CopyDatabase(pristine / "gs360.db", db_path);
+  for (const CalibrationKill& kill : CalibrationKills()) CalibrateAndKill(f, body, kill, db_path);
   auto daemon = test::StartDaemonProcess(f);
   cli::DaemonClient client(daemon->url(), "");
   // Killed while it ran, or (a round's moment came after the last stage) already done.
