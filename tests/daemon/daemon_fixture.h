@@ -2,6 +2,7 @@
 // A virtual rig with gs360d serving it: in this process (Daemon + HttpApi on a free loopback
 // port) or as a child process (the gs360d binary), for the API and end-to-end tests.
 
+#include <deque>
 #include <fstream>
 #include <memory>
 #include <string>
@@ -67,6 +68,22 @@ inline std::unique_ptr<cli::DaemonProcess> StartDaemonProcess(const RigFixture& 
   std::ofstream(config) << RigToml(f.config, extra);
   return std::make_unique<cli::DaemonProcess>(std::string(GS360_BINARY_DIR) + "/daemon/gs360d",
                                               config, f.dir / "data", f.dir / "gs360d.log");
+}
+
+// The last `n` warning and error lines of a gs360d log, for a failing check's message: CI shows
+// only the start of a failure's output, so the daemon's own account goes before the long texts.
+inline std::string DaemonLogProblems(const std::filesystem::path& log, std::size_t n = 4) {
+  std::ifstream in(log);
+  std::deque<std::string> last;
+  for (std::string line; std::getline(in, line);) {
+    if (line.find("[warning]") == std::string::npos && line.find("[error]") == std::string::npos)
+      continue;
+    last.push_back(line);
+    if (last.size() > n) last.pop_front();
+  }
+  std::string out;
+  for (const auto& line : last) out += line + "\n";
+  return out.empty() ? "(no warnings or errors in " + log.string() + ")" : out;
 }
 
 }  // namespace gs360::test
