@@ -1,5 +1,5 @@
-// Capture benchmark: cost of CapturePress's stale filtering + K-frame averaging (from memory, no
-// camera), and replay throughput (PNG decode) over a temporary folder.
+// Capture benchmark: cost of CapturePress's stale filtering, outlier check and K-frame averaging
+// (from memory, no camera), and replay throughput (PNG decode) over a temporary folder.
 //
 // Usage: bench_capture [--width W] [--height H] [--frames N]
 // Prints one line per figure.
@@ -76,27 +76,41 @@ int main(int argc, char** argv) {
   CLI11_PARSE(app, argc, argv);
   const cv::Size size(width, height);
   cv::theRNG().state = 1;
+  // One settled press seen four times: the same scene, fresh sensor noise in each frame (frames
+  // of different scenes would be outliers to each other).
+  const cv::Mat scene = RandomImage(size);
   std::vector<cv::Mat> images;
-  for (int i = 0; i < 4; ++i) images.push_back(RandomImage(size));
+  for (int i = 0; i < 4; ++i) {
+    cv::Mat noise(size, CV_16SC3);
+    cv::randn(noise, cv::Scalar::all(0), cv::Scalar::all(3));
+    cv::Mat frame;
+    cv::add(scene, noise, frame, cv::noArray(), CV_8UC3);
+    images.push_back(frame);
+  }
 
   std::printf("capture bench, %dx%d BGR frames\n", width, height);
   const Clock::time_point sync_ok = Clock::now();
   for (int k : {1, 3, 5, 10}) {
-    MemorySource source(images, sync_ok, 2);
-    gs360::PressCaptureOptions options;
-    options.frames_to_average = k;
-    const int presses = std::max(10, frames / k);
-    const auto t0 = Clock::now();
-    for (int p = 0; p < presses; ++p) {
-      const auto result = gs360::CapturePress(source, sync_ok, options);
-      if (!result.ok()) {
-        std::fprintf(stderr, "unexpected status\n");
-        return 1;
+    for (bool outliers : {false, true}) {
+      if (k == 1 && outliers) continue;  // nothing to compare
+      MemorySource source(images, sync_ok, 2);
+      gs360::PressCaptureOptions options;
+      options.frames_to_average = k;
+      options.reject_outliers = outliers;
+      const int presses = std::max(10, frames / k);
+      const auto t0 = Clock::now();
+      for (int p = 0; p < presses; ++p) {
+        const auto result = gs360::CapturePress(source, sync_ok, options);
+        if (!result.ok() || result.outliers_rejected != 0) {
+          std::fprintf(stderr, "unexpected status: %s\n",
+                       std::string(gs360::ToString(result.status)).c_str());
+          return 1;
+        }
       }
+      const double ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+      std::printf("  CapturePress K=%-2d (2 stale + K fresh per press)%s: %8.3f ms/press\n", k,
+                  outliers ? ", outlier check" : "", ms / presses);
     }
-    const double ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
-    std::printf("  CapturePress K=%-2d (2 stale + K fresh per press): %8.3f ms/press\n", k,
-                ms / presses);
   }
 
   namespace fs = std::filesystem;

@@ -29,6 +29,17 @@ struct PressCaptureOptions {
   // More stale frames than this means the timestamps cannot be trusted (or the sync `ok` is in the
   // future): the capture gives up with kTooManyStale. >= 0.
   int max_stale_frames = 30;
+  // Frames that disagree with the others are left out of the average (a transfer error, a
+  // glitching sensor), and more are read in their place. Two frames disagree when more than
+  // `outlier_fraction` of their pixel values (each channel counted) differ by more than
+  // `outlier_dn`: sensor noise never does that to a settled press, a torn or garbled frame does.
+  // Needs K >= 2 (K = 1 has nothing to compare with). outlier_dn in [1, 255], outlier_fraction
+  // in (0, 1], max_outlier_frames >= 0.
+  bool reject_outliers = true;
+  int outlier_dn = 40;
+  double outlier_fraction = 0.005;
+  // Fresh frames beyond K that may be read to replace outliers before giving up (kInconsistent).
+  int max_outlier_frames = 3;
 
   // Throws std::invalid_argument naming the field and its value.
   void Check() const;
@@ -38,6 +49,7 @@ enum class PressCaptureStatus {
   kOk,
   kTimeout,       // the source delivered fewer than K fresh frames before the deadline (or ended)
   kTooManyStale,  // more than max_stale_frames frames exposed before sync_ok
+  kInconsistent,  // no K fresh frames agreed within K + max_outlier_frames
 };
 
 std::string_view ToString(PressCaptureStatus status);
@@ -51,7 +63,10 @@ struct PressCaptureResult {
   int frames_used = 0;
   // Frames discarded because they were exposed before sync_ok.
   int stale_dropped = 0;
-  // Timestamps and sequence numbers of the first and last fresh frame (valid when frames_used>0).
+  // Fresh frames left out because they disagreed with the others (reject_outliers).
+  int outliers_rejected = 0;
+  // Timestamps and sequence numbers of the first and last frame averaged (valid when kOk; on a
+  // failure, of the fresh frames received).
   std::chrono::steady_clock::time_point first_timestamp{};
   std::chrono::steady_clock::time_point last_timestamp{};
   std::uint64_t first_sequence = 0;
@@ -60,12 +75,13 @@ struct PressCaptureResult {
   bool ok() const { return status == PressCaptureStatus::kOk; }
 };
 
-// Reads frames from a started `source` until K fresh frames (ExposureStart() > sync_ok) have
-// arrived, then averages them. Stale frames are counted and dropped. Each Next() call waits at
+// Reads frames from a started `source` until K fresh frames (ExposureStart() > sync_ok) that
+// agree with each other have arrived, then averages them. Stale frames and outliers are counted
+// and dropped. Each Next() call waits at
 // most the time left until the deadline (now + options.timeout). Returns a status, not an
-// exception, on timeout or too many stale frames. Throws std::invalid_argument for invalid
-// options, std::runtime_error if a frame is not CV_8UC3 or differs in size from the first fresh
-// frame (a backend bug), and lets FrameSourceError from the source propagate.
+// exception, on timeout, too many stale frames or no agreeing K. Throws std::invalid_argument for
+// invalid options, std::runtime_error if a frame is not CV_8UC3 or differs in size from the first
+// fresh frame (a backend bug), and lets FrameSourceError from the source propagate.
 PressCaptureResult CapturePress(FrameSource& source, std::chrono::steady_clock::time_point sync_ok,
                                 const PressCaptureOptions& options);
 

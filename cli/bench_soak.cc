@@ -18,6 +18,7 @@
 #include <nlohmann/json.hpp>
 
 #include "cli/commands.h"
+#include "cli/sim_args.h"
 #include "cli/sim_bridge.h"
 #include "daemon/run_engine.h"
 #include "storage/run_database.h"
@@ -30,38 +31,10 @@ using Json = nlohmann::json;
 struct BenchSoakArgs {
   int candidates = 2800;  // about 70 % are probed on the default cylinder: ~2,000 probes
   double fault_every = 50.0;
-  std::vector<std::string> faults = {"drop",  "garble", "garble-reply",  "stall",      "unplug",
-                                     "reset", "alarm",  "lost-position", "power-cycle"};
+  std::string faults = "all";
   std::uint64_t seed = 1;
   std::string dir;
 };
-
-// One fault on the rig. Kinds as in `--faults`.
-void Inject(VirtualRig& rig, const std::string& kind, std::mt19937_64& rng) {
-  VirtualCnc& cnc = rig.cnc();
-  if (kind == "drop") {
-    cnc.DropNextBytes(3);
-  } else if (kind == "garble") {
-    cnc.GarbleNextBytes(4);
-  } else if (kind == "garble-reply") {
-    cnc.GarbleNextBytes(6, FaultDirection::kCncToHost);
-  } else if (kind == "stall") {
-    cnc.StallReplies(std::chrono::milliseconds(500 + static_cast<int>(rng() % 1000)));
-  } else if (kind == "unplug") {
-    UnplugOptions unplug;
-    unplug.replug_after = std::chrono::milliseconds(500);
-    cnc.Unplug(unplug);
-  } else if (kind == "reset") {
-    cnc.ResetDuringNextDwell();
-  } else if (kind == "alarm") {
-    cnc.RaiseAlarmDuringNextMove(1, 0.5);  // a hard limit: the run fails and is resumed
-  } else if (kind == "power-cycle") {
-    cnc.PowerCycle();  // boots in Alarm at MPos 0,0,0: the run asks, the user confirms, it homes
-  } else if (kind == "lost-position") {
-    cnc.LosePositionOnReset(true);
-    cnc.RaiseAlarmDuringNextMove(3, 0.3);
-  }
-}
 
 struct SoakResult {
   std::map<std::string, int> injected;
@@ -120,7 +93,6 @@ SoakResult Soak(const BenchSoakArgs& a, const std::filesystem::path& dir) {
       MakeVirtualSetup(config, 0.0, a.seed, dir / "camera.sock", (dir / "ttyCNC").string(),
                        [](VirtualRigOptions& o) { o.frame_log_capacity = 1u << 19; });
   config = setup.config;
-  config.engine.sync_timeout_s = 5.0;
   config.engine.reconnect_timeout_s = 10.0;
   const std::filesystem::path db_path = dir / "soak.db";
   RunEngine engine(db_path);
@@ -130,12 +102,13 @@ SoakResult Soak(const BenchSoakArgs& a, const std::filesystem::path& dir) {
   std::uniform_real_distribution<double> spacing(0.5 * a.fault_every, 1.5 * a.fault_every);
   std::mutex mutex;
   double next = spacing(rng);
+  const std::vector<RigFault> faults = ParseRigFaults(a.faults);
   engine.SetProgressCallback([&](const RunProgress& p) {
     std::lock_guard<std::mutex> lock(mutex);
     if (static_cast<double>(p.counts.captured) < next) return;
-    const std::string& kind = a.faults[rng() % a.faults.size()];
-    Inject(*setup.rig, kind, rng);
-    ++out.injected[kind];
+    const RigFault fault = faults[rng() % faults.size()];
+    InjectRigFault(*setup.rig, fault, rng);
+    ++out.injected[std::string(ToString(fault))];
     ++out.faults;
     next = static_cast<double>(p.counts.captured) + spacing(rng);
     std::fprintf(stderr, "\rsoak: %lld probes, %d faults",
@@ -203,12 +176,7 @@ void RegisterSoakBench(CLI::App& bench, CommandContext& ctx) {
   cmd->add_option("--candidates", a.candidates,
                   "Candidate points (about 70 % are probed on the default cylinder)")
       ->check(CLI::Range(10, 100000));
-  cmd->add_option("--fault-every", a.fault_every, "Mean probes between faults (uniform 0.5-1.5x)")
-      ->check(CLI::Range(2.0, 100000.0));
-  cmd->add_option("--faults", a.faults, "Fault kinds to draw from (comma-separated)")
-      ->delimiter(',')
-      ->check(CLI::IsMember({"drop", "garble", "garble-reply", "stall", "unplug", "reset", "alarm",
-                             "lost-position", "power-cycle"}));
+  AddFaultArgs(cmd, &a.faults, &a.fault_every);
   cmd->add_option("--seed", a.seed, "Seed of the rig and of the faults' kinds and times");
   cmd->add_option("--dir", a.dir, "Keep the database and logs here (default: a temporary folder)");
   cmd->callback([&ctx] { ctx.exit_code = RunBenchSoak(a, ctx); });

@@ -83,6 +83,24 @@ void ValidateAgainstTruth(const std::filesystem::path& db_path, std::int64_t run
   std::printf("%s", FormatTargetsAndWarnings(result.validation).c_str());
 }
 
+// With faults: resumes a stopped run as a user would (confirming what it asks about), until it
+// is done or kMaxResumes sessions have not finished it.
+Json ResumeUntilDone(DaemonClient& client, std::int64_t id, Json run) {
+  constexpr int kMaxResumes = 500;
+  const std::string path = "/api/v1/runs/" + std::to_string(id);
+  for (int resumes = 0; run["state"] == "interrupted" && resumes < kMaxResumes; ++resumes) {
+    Json body = Json::object();
+    if (run.contains("awaiting") && run["awaiting"].is_string()) {
+      body["confirm"] = run["awaiting"];
+      std::printf("  resuming, confirming the %s as the user would\n",
+                  run["awaiting"].get<std::string>().c_str());
+    }
+    client.Post(path + "/resume", body);
+    run = WatchRun(client, id, stdout, stderr);
+  }
+  return run;
+}
+
 int RunDemo(const DemoOptions& o) {
   const auto t0 = std::chrono::steady_clock::now();
   const std::filesystem::path dir = std::filesystem::absolute(
@@ -96,8 +114,10 @@ int RunDemo(const DemoOptions& o) {
                                  : "instant motion");
   RunConfig config = BaseRunConfig(o.sim);
   if (o.sim.config.empty()) config.rig.shape.shape = ParseSensorShape(o.shape);
+  // With faults the CNC may come back under a new pty (unplug): the daemon finds it by symlink.
   VirtualSetup setup =
-      MakeVirtualSetup(config, o.time_scale, o.seed, dir / "camera.sock", {},
+      MakeVirtualSetup(config, o.time_scale, o.seed, dir / "camera.sock",
+                       o.sim.faults.empty() ? std::string() : (dir / "ttyCNC").string(),
                        [&](VirtualRigOptions& rig_options) { ApplySimArgs(o.sim, &rig_options); });
   config = setup.config;
   VirtualRig& rig = *setup.rig;
@@ -120,8 +140,17 @@ int RunDemo(const DemoOptions& o) {
   const std::int64_t id = created["id"].get<std::int64_t>();
   std::printf("created run %lld\n", static_cast<long long>(id));
   PrintPlan(stdout, created["plan"]);
+  std::unique_ptr<RigFaultSchedule> faults = StartFaults(o.sim, rig, o.seed);
+  if (faults) {
+    std::printf("faults: %s, one every ~%.0f presses\n", o.sim.faults.c_str(), o.sim.fault_every);
+  }
   client.Post("/api/v1/runs/" + std::to_string(id) + "/start");
-  const Json run = WatchRun(client, id, stdout, stderr);
+  Json run = WatchRun(client, id, stdout, stderr);
+  if (faults) {
+    run = ResumeUntilDone(client, id, run);
+    std::printf("  injected: %s\n", DescribeFaults(faults->Injected()).c_str());
+    faults.reset();  // the calibration runs on a quiet rig
+  }
   const double acquisition_s = Since(t0);
 
   RunDatabaseOptions ro;

@@ -57,6 +57,9 @@ void RegisterSimCommands(CLI::App& app, CommandContext& ctx) {
   auto* shape =
       rig->add_option("--shape", o.shape, "cylinder, cone or spline")->capture_default_str();
   rig->add_option("--socket", o.socket, "Frame socket path (default: in the temp directory)");
+  rig->add_option("--symlink", o.symlink,
+                  "Keep a symlink to the CNC's pty here (printed instead of the pty): a replugged "
+                  "CNC (--faults unplug) gets a new pty");
   rig->add_option("--seed", o.seed, "Seed of the hidden true camera and the noise")
       ->capture_default_str();
   AddSimArgs(rig, &o.sim);
@@ -69,13 +72,22 @@ void RegisterSimCommands(CLI::App& app, CommandContext& ctx) {
     options.camera.sensor.seed = o.seed;
     options.cnc.time_scale = o.time_scale;
     options.frame_socket = o.socket;
+    options.cnc.symlink_path = o.symlink;
     ApplySimArgs(o.sim, &options);
     VirtualRig virtual_rig(options);
-    std::printf("%s\n%s\n", virtual_rig.PtyPath().c_str(), virtual_rig.FrameUri().c_str());
+    const auto faults = StartFaults(o.sim, virtual_rig, o.seed);
+    if (faults && o.symlink.empty()) {
+      std::fprintf(stderr,
+                   "sim-rig: without --symlink a sender cannot find the CNC again after an "
+                   "unplug fault (it comes back under a new pty)\n");
+    }
+    std::printf("%s\n%s\n", o.symlink.empty() ? virtual_rig.PtyPath().c_str() : o.symlink.c_str(),
+                virtual_rig.FrameUri().c_str());
     std::fflush(stdout);
     std::signal(SIGINT, OnSignal);
     std::signal(SIGTERM, OnSignal);
     while (!g_stop) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    if (faults) std::fprintf(stderr, "sim-rig: %s\n", DescribeFaults(faults->Injected()).c_str());
   });
 }
 

@@ -52,6 +52,48 @@ void AddSimArgs(CLI::App* cmd, SimArgs* args) {
   cmd->add_option("--blue-ring-radius", args->blue_ring_radius,
                   "The blue ring's radius, fraction of the base radius (default 0.35)")
       ->check(CLI::Range(0.0, 1.0));
+  AddFaultArgs(cmd, &args->faults, &args->fault_every);
+}
+
+void AddFaultArgs(CLI::App* cmd, std::string* faults, double* every) {
+  cmd->add_option("--faults", *faults,
+                  "Faults to inject, comma-separated: drop, garble, garble-reply, stall, unplug, "
+                  "reset, alarm, lost-position, power-cycle, hold, lost-reply, frame-drop, "
+                  "frame-corrupt, or all")
+      ->check(CLI::Validator(
+          [](std::string& list) {
+            try {
+              ParseRigFaults(list);
+              return std::string();
+            } catch (const std::invalid_argument& e) {
+              return std::string(e.what());
+            }
+          },
+          "KIND,..."));
+  cmd->add_option("--fault-every", *every, "Mean presses between faults (uniform 0.5-1.5x)")
+      ->check(CLI::Range(2.0, 100000.0))
+      ->capture_default_str();
+}
+
+std::unique_ptr<RigFaultSchedule> StartFaults(const SimArgs& args, VirtualRig& rig,
+                                              std::uint64_t seed) {
+  if (args.faults.empty()) return nullptr;
+  RigFaultScheduleOptions options;
+  options.faults = ParseRigFaults(args.faults);
+  options.every_probes = args.fault_every;
+  options.seed = seed;
+  return std::make_unique<RigFaultSchedule>(rig, options);
+}
+
+std::string DescribeFaults(const std::map<std::string, int>& injected) {
+  int total = 0;
+  std::string kinds;
+  for (const auto& [kind, n] : injected) {
+    total += n;
+    kinds += (kinds.empty() ? "" : ", ") + std::to_string(n) + " " + kind;
+  }
+  return std::to_string(total) + " fault" + (total == 1 ? "" : "s") +
+         (kinds.empty() ? "" : " (" + kinds + ")");
 }
 
 namespace {

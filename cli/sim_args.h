@@ -4,6 +4,8 @@
 // height, mount; its [plan] and [plan.machine]), how far the hidden true camera lies from that
 // nominal description, the sensor's noise and the LEDs' drift.
 
+#include <map>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
@@ -11,6 +13,7 @@
 #include <CLI/CLI.hpp>
 
 #include "daemon/run_config.h"
+#include "sim/rig_faults.h"
 #include "sim/virtual_rig.h"
 
 namespace gs360::cli {
@@ -34,12 +37,26 @@ struct SimArgs {
   std::vector<double> led_intensity;
   std::optional<int> blue_leds;
   std::optional<double> blue_ring_radius;
+  // Faults injected while the rig serves (sim/rig_faults.h): kinds, comma-separated ("" none,
+  // "all"), one every ~fault_every presses.
+  std::string faults;
+  double fault_every = 50.0;
 };
 
 // Adds --config, --perturbation, --camera-tilt, --camera-offset, --no-noise, --read-noise,
 // --shot-gain, --led-drift, --led-heights, --led-radial, --led-intensity, --blue-leds,
-// --blue-ring-radius to `cmd`.
+// --blue-ring-radius, --faults, --fault-every to `cmd`.
 void AddSimArgs(CLI::App* cmd, SimArgs* args);
+
+// Adds `--faults LIST` (checked with ParseRigFaults: an unknown kind is a usage error naming the
+// known ones) and `--fault-every N` to `cmd`.
+void AddFaultArgs(CLI::App* cmd, std::string* faults, double* every);
+
+// The fault schedule `args` asks for on `rig` (seeded with `seed`), or null without --faults.
+std::unique_ptr<RigFaultSchedule> StartFaults(const SimArgs& args, VirtualRig& rig,
+                                              std::uint64_t seed);
+// "12 faults (3 drop, 9 stall)".
+std::string DescribeFaults(const std::map<std::string, int>& injected);
 
 // The run configuration the virtual rig is built from: the file's (its [machine] and [camera]
 // are replaced by the virtual rig's), else the defaults. Throws ConfigError naming the file, the

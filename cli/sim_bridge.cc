@@ -97,13 +97,15 @@ SteadyClock::time_point SteadyAt(double seconds) {
       std::chrono::duration_cast<SteadyClock::duration>(std::chrono::duration<double>(seconds)));
 }
 
-// The rounded mean of served[end - k + 1 .. end] at the fingerprint pixels, computed as
-// CapturePress averages (float sums, convertTo with 1/K: round half to even, saturate).
-Fingerprint WindowMean(const std::vector<ServedFrame>& served, std::size_t end, int k) {
+// The rounded mean of the k frames served[clean[end - k + 1 .. end]] at the fingerprint pixels,
+// computed as CapturePress averages (float sums, convertTo with 1/K: round half to even,
+// saturate).
+Fingerprint WindowMean(const std::vector<ServedFrame>& served,
+                       const std::vector<std::size_t>& clean, std::size_t end, int k) {
   cv::Mat sum = cv::Mat::zeros(1, kFingerprintPixels, CV_32FC3);
   for (std::size_t i = end + 1 - static_cast<std::size_t>(k); i <= end; ++i) {
     const cv::Mat frame(1, kFingerprintPixels, CV_8UC3,
-                        const_cast<std::uint8_t*>(served[i].fingerprint.data()));
+                        const_cast<std::uint8_t*>(served[clean[i]].fingerprint.data()));
     cv::accumulate(frame, sum);
   }
   Fingerprint out{};
@@ -144,11 +146,17 @@ CaptureTruth CheckCapturesAgainstTruth(const VirtualRig& rig, const RunDatabase&
       std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count() -
       Seconds(SteadyClock::now()));
 
-  // Every window of k consecutive served frames, by the hash of its rounded mean.
+  // Every window of k consecutive undamaged served frames (a capture leaves a damaged one out
+  // and reads the next), by the hash of its rounded mean. A stored image with a damaged frame
+  // averaged in matches none: unverified.
   const std::vector<ServedFrame> served = rig.ServedFrames();
-  std::unordered_multimap<std::uint64_t, std::size_t> windows;  // -> index of the last frame
-  for (std::size_t end = static_cast<std::size_t>(k) - 1; end < served.size(); ++end) {
-    windows.emplace(Key(WindowMean(served, end, k)), end);
+  std::vector<std::size_t> clean;  // indices into served
+  for (std::size_t i = 0; i < served.size(); ++i) {
+    if (!served[i].corrupted) clean.push_back(i);
+  }
+  std::unordered_multimap<std::uint64_t, std::size_t> windows;  // -> index in clean of the last
+  for (std::size_t end = static_cast<std::size_t>(k) - 1; end < clean.size(); ++end) {
+    windows.emplace(Key(WindowMean(served, clean, end, k)), end);
   }
 
   const VirtualCnc& cnc = rig.cnc();
@@ -163,9 +171,9 @@ CaptureTruth CheckCapturesAgainstTruth(const VirtualRig& rig, const RunDatabase&
     const double hint = c.frame_time - check_offset;
     const auto [first, last] = windows.equal_range(Key(stored));
     for (auto it = first; it != last; ++it) {
-      if (WindowMean(served, it->second, k) != stored) continue;  // a hash collision
-      if (!match || std::abs(Seconds(served[it->second].timestamp) - hint) <
-                        std::abs(Seconds(served[*match].timestamp) - hint)) {
+      if (WindowMean(served, clean, it->second, k) != stored) continue;  // a hash collision
+      if (!match || std::abs(Seconds(served[clean[it->second]].timestamp) - hint) <
+                        std::abs(Seconds(served[clean[*match]].timestamp) - hint)) {
         match = it->second;
       }
     }
@@ -174,7 +182,7 @@ CaptureTruth CheckCapturesAgainstTruth(const VirtualRig& rig, const RunDatabase&
       truth.unverified_plan_indices.push_back(index);
       continue;
     }
-    const ServedFrame& last_frame = served[*match];
+    const ServedFrame& last_frame = served[clean[*match]];
     // The offset of the session that stored this frame: its Unix frame time is the steady
     // timestamp of the last averaged frame, mapped with that session's offset.
     const double session_offset = c.frame_time - Seconds(last_frame.timestamp);
@@ -184,7 +192,7 @@ CaptureTruth CheckCapturesAgainstTruth(const VirtualRig& rig, const RunDatabase&
     double err = 0.0;
     try {
       for (std::size_t i = *match + 1 - static_cast<std::size_t>(k); i <= *match; ++i) {
-        const ServedFrame& f = served[i];
+        const ServedFrame& f = served[clean[i]];
         err = std::max(err, (f.machine_position - press).norm());
         err = std::max(err, (cnc.TruePosition(f.timestamp - f.exposure) - press).norm());
       }

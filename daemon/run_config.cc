@@ -179,7 +179,11 @@ nlohmann::json RunConfigToJson(const RunConfig& c) {
         {"height", c.camera.controls.height},
         {"frames_to_average", c.camera.capture.frames_to_average},
         {"capture_timeout_ms", c.camera.capture.timeout.count()},
-        {"max_stale_frames", c.camera.capture.max_stale_frames}}},
+        {"max_stale_frames", c.camera.capture.max_stale_frames},
+        {"reject_outliers", c.camera.capture.reject_outliers},
+        {"outlier_dn", c.camera.capture.outlier_dn},
+        {"outlier_fraction", c.camera.capture.outlier_fraction},
+        {"max_outlier_frames", c.camera.capture.max_outlier_frames}}},
       {"engine",
        {{"max_attempts", c.engine.max_attempts},
         {"recheck_probes", c.engine.recheck_probes},
@@ -225,6 +229,10 @@ void ReadRunConfig(JsonReader& r, RunConfig& c) {
     o.Get("capture_timeout_ms", timeout_ms);
     c.camera.capture.timeout = std::chrono::milliseconds(timeout_ms);
     o.Get("max_stale_frames", c.camera.capture.max_stale_frames);
+    o.Get("reject_outliers", c.camera.capture.reject_outliers);
+    o.Get("outlier_dn", c.camera.capture.outlier_dn);
+    o.Get("outlier_fraction", c.camera.capture.outlier_fraction);
+    o.Get("max_outlier_frames", c.camera.capture.max_outlier_frames);
   });
   r.Object("engine", [&](JsonReader& o) {
     o.Get("max_attempts", c.engine.max_attempts);

@@ -175,11 +175,45 @@ std::optional<std::string> RunSession::Unsafe(const std::vector<std::string>& li
   return std::nullopt;
 }
 
+session::LostReplyWatch::LostReplyWatch(GrblClient& client, const std::vector<std::string>& lines)
+    : client_(client), garbled_before_(client.Stats().unknown_lines), sent_at_(Clock::now()) {
+  // Idle covers a dwell too (GRBL reports Idle in G4): wait it out, and then some.
+  for (const std::string& line : lines) {
+    const std::size_t g4 = line.find("G4");
+    const std::size_t p = line.find('P', g4 == std::string::npos ? line.size() : g4);
+    if (p != std::string::npos) dwell_s_ += std::strtod(line.c_str() + p + 1, nullptr);
+  }
+}
+
+bool session::LostReplyWatch::Lost() {
+  // The poller's latest report, or a fresh one when it is old (or the poller is off).
+  std::optional<GrblStatusSample> status = client_.LatestStatus();
+  const auto now = Clock::now();
+  if (!status || now - status->received_at > std::chrono::milliseconds(300)) {
+    if (now < next_query_) return false;
+    next_query_ = now + std::chrono::milliseconds(250);
+    status = client_.QueryStatus(std::chrono::milliseconds(500));
+  }
+  if (!status || status->received_at <= sent_at_) return false;
+  if (status->status.state != GrblMachineState::kIdle) {
+    idle_since_.reset();
+    return false;
+  }
+  if (!idle_since_) idle_since_ = status->received_at;
+  const double quiet = dwell_s_ + (Garbled() > 0 ? kLostReplyQuietS : kLostLineQuietS);
+  return status->received_at - *idle_since_ >= Ms(quiet);
+}
+
+std::uint64_t session::LostReplyWatch::Garbled() const {
+  return client_.Stats().unknown_lines - garbled_before_;
+}
+
 Step RunSession::SendAndSync(const std::vector<std::string>& lines, Clock::time_point* sync_at) {
   if (auto bad = Unsafe(lines, position_)) return {StepKind::kSafety, *bad};
   Commanded(lines, position_);
   std::vector<GrblHandle> handles;
   handles.reserve(lines.size());
+  session::LostReplyWatch lost(*client_, lines);  // before sending: replies come at once
   for (const std::string& line : lines) handles.push_back(client_->Send(line));
   // An alarm on an earlier line leaves the later ones unanswered (GRBL flushes nothing and waits
   // for a reset): stop waiting as soon as the controller is in alarm or gone, not at the timeout.
@@ -189,6 +223,18 @@ Step RunSession::SendAndSync(const std::vector<std::string>& lines, Clock::time_
     last = client_->WaitForOk(handles.back(), std::chrono::milliseconds(100));
     if (last.kind != GrblReplyKind::kTimeout) break;
     if (client_->Alarmed() || !client_->Connected() || Clock::now() >= deadline) break;
+    if (client_->Held()) {
+      return {StepKind::kHeld, "the controller went into a feed hold during '" + lines.back() +
+                                   "' (a hold button, or noise on the serial line read as '!')"};
+    }
+    if (lost.Lost()) {
+      const std::uint64_t garbled = lost.Garbled();
+      return {StepKind::kStall,
+              "the controller stands idle with '" + lines.back() + "' unanswered: " +
+                  (garbled > 0 ? "a reply was lost (the serial line brought " +
+                                     std::to_string(garbled) + " unreadable line(s))"
+                               : std::string("a line or its reply was lost on the serial line"))};
+    }
   }
   Step step = Classify(handles);
   if (step.kind == StepKind::kOk) {
@@ -196,6 +242,26 @@ Step RunSession::SendAndSync(const std::vector<std::string>& lines, Clock::time_
     if (!last_path_.empty()) last_path_ = {last_path_.back()};  // all executed: at the end
   }
   return step;
+}
+
+std::string RunSession::CaptureFailure(const std::string& what, const PressCaptureResult& r) {
+  return what + ": " + std::string(ToString(r.status)) + " (" + std::to_string(r.frames_used) +
+         " frames, " + std::to_string(r.stale_dropped) + " stale" +
+         (r.status == PressCaptureStatus::kInconsistent
+              ? ", no " + std::to_string(config_.camera.capture.frames_to_average) +
+                    " of them agree: a camera or transfer fault?"
+              : std::string()) +
+         ")";
+}
+
+void RunSession::NoteOutliers(const std::string& what, int plan_index,
+                              const PressCaptureResult& r) {
+  if (r.outliers_rejected == 0) return;
+  Event(EventLevel::kWarning, "probe " + std::to_string(plan_index) + ": " +
+                                  std::to_string(r.outliers_rejected) + " camera frame(s) of the " +
+                                  what +
+                                  " left out: they disagreed with the others (a camera or "
+                                  "transfer fault?)");
 }
 
 Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference, Press* out) {
@@ -216,11 +282,8 @@ Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference,
     at_retract_of_ = -2;
     if (step.kind != StepKind::kOk) return step;
     const PressCaptureResult ref = CapturePress(*source_, sync, config_.camera.capture);
-    if (!ref.ok()) {
-      return {StepKind::kProbeError, "reference frame: " + std::string(ToString(ref.status)) +
-                                         " (" + std::to_string(ref.frames_used) + " frames, " +
-                                         std::to_string(ref.stale_dropped) + " stale)"};
-    }
+    if (!ref.ok()) return {StepKind::kProbeError, CaptureFailure("reference frame", ref)};
+    NoteOutliers("reference frame", planned.plan_index, ref);
     db_.AddReferenceFrame(run_id_, ref.image, ToUnix(ref.last_timestamp));
     last_reference_at_ = probes_done_;
     out->reference = ref.image;
@@ -239,11 +302,8 @@ Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference,
   const PressCaptureResult capture = CapturePress(*source_, sync, config_.camera.capture);
   const auto sample = status.get();
   SendRetract(program, planned);
-  if (!capture.ok()) {
-    return {StepKind::kProbeError, "press frame: " + std::string(ToString(capture.status)) + " (" +
-                                       std::to_string(capture.frames_used) + " frames, " +
-                                       std::to_string(capture.stale_dropped) + " stale)"};
-  }
+  if (!capture.ok()) return {StepKind::kProbeError, CaptureFailure("press frame", capture)};
+  NoteOutliers("press frame", planned.plan_index, capture);
   if (!sample || !sample->machine_position) {
     return {StepKind::kProbeError, "no status report (machine position) after the press"};
   }
@@ -289,7 +349,8 @@ void RunSession::SendRetract(const ProbeProgram& program, const PlannedProbe& pl
 }
 
 void RunSession::SettleAndRecord() {
-  if (!client_ || !client_->Connected() || client_->Alarmed() || !client_->PositionTrusted()) {
+  if (!client_ || !client_->Connected() || client_->Alarmed() || client_->Held() ||
+      !client_->PositionTrusted()) {
     return;
   }
   // The motion sent has ended where it was sent: the next session starts from one known point.
@@ -435,6 +496,13 @@ RunReport RunSession::Run() {
       case StepKind::kSafety:
         return finish(RunOutcome::kFailed, RunState::kInterrupted,
                       "safety limit: " + step.message + ". Nothing of that line was sent.");
+      case StepKind::kHeld:
+        // Perhaps a person at the machine: nothing more moves until a user says so.
+        return finish(RunOutcome::kFailed, RunState::kInterrupted,
+                      step.message +
+                          ". Nothing more was sent. Check the machine; `resume` "
+                          "ends the hold with a soft reset (a hold keeps the position) "
+                          "and continues.");
       case StepKind::kReset:
       case StepKind::kDisconnected:
       case StepKind::kStall:

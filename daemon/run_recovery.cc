@@ -35,6 +35,11 @@ void RunSession::ConnectMachine() {
   Event(EventLevel::kInfo, "connected to " + info.firmware + " " + info.version + " at " +
                                config_.machine.uri + " (RX buffer " +
                                std::to_string(info.rx_buffer_bytes) + " bytes)");
+  if (info.ended_feed_hold) {
+    Event(EventLevel::kInfo,
+          "the controller stood in a feed hold: a soft reset ended it (a completed hold keeps the "
+          "position; the held lines are dropped)");
+  }
   CompareFirmware(info);
 }
 

@@ -13,6 +13,7 @@
 #include <spdlog/spdlog.h>
 #include <opencv2/core/mat.hpp>
 
+#include "capture/capture_press.h"
 #include "capture/frame_source.h"
 #include "capture/impression.h"
 #include "daemon/run_engine.h"
@@ -52,8 +53,37 @@ enum class StepKind {
   kAlarm,         // the machine raised an alarm: stop the run
   kReset,         // the controller reset: everything in flight is void, position lost
   kDisconnected,  // the port vanished
-  kStall,         // no sync ok within the timeout
+  kStall,         // no sync ok within the timeout, or a reply lost on the line
   kSafety,        // a line would break a safety limit: nothing of it was sent
+  kHeld,          // the controller went into a feed hold the run did not ask for: stop the run
+};
+
+// How long a controller must stand idle, beyond the dwells sent, with a line unanswered before
+// the line or its reply counts as lost (s): after unreadable bytes came in, and without.
+inline constexpr double kLostReplyQuietS = 0.75;
+inline constexpr double kLostLineQuietS = 2.0;
+
+// While waiting for a reply. GRBL's lines and replies carry no checksum: noise can turn an `ok`
+// into an unreadable line, or eat a line's newline so the controller never sees its end, and the
+// wait would last the whole sync timeout (minutes). GRBL answers a line as soon as it is planned
+// (a dwell after it has run), so a controller that stands idle longer than the dwells sent take
+// with a line unanswered has lost it or its reply: the caller recovers (soft reset, position
+// check) at once.
+class LostReplyWatch {
+ public:
+  LostReplyWatch(GrblClient& client, const std::vector<std::string>& lines);
+  // Uses the status poller's reports; asks for one (at most every 250 ms) when they are old.
+  bool Lost();
+  // Unreadable lines since the lines were sent.
+  std::uint64_t Garbled() const;
+
+ private:
+  GrblClient& client_;
+  std::uint64_t garbled_before_;
+  std::chrono::steady_clock::time_point sent_at_;
+  double dwell_s_ = 0.0;
+  std::chrono::steady_clock::time_point next_query_{};
+  std::optional<std::chrono::steady_clock::time_point> idle_since_;
 };
 
 struct Step {
@@ -130,6 +160,9 @@ class RunSession {
   void Commanded(const std::vector<std::string>& lines, const Eigen::Vector3d& from);
   // Probing.
   Step PressProbe(const PlannedProbe& planned, bool take_reference, Press* out);
+  // What a failed capture says; a warning event for frames left out of a good one.
+  std::string CaptureFailure(const std::string& what, const PressCaptureResult& r);
+  void NoteOutliers(const std::string& what, int plan_index, const PressCaptureResult& r);
   Step SendAndSync(const std::vector<std::string>& lines, Clock::time_point* sync_at);
   Step Classify(const std::vector<GrblHandle>& handles);
   std::optional<std::vector<Eigen::Vector3d>> TravelTo(const PlannedProbe& planned);

@@ -160,6 +160,14 @@ std::string_view GrblReplyKindName(GrblReplyKind kind) {
   return "?";
 }
 
+namespace {
+
+bool HeldReport(const std::optional<GrblStatusSample>& s) {
+  return s && s->status.state == GrblMachineState::kHold && s->status.substate <= 0;
+}
+
+}  // namespace
+
 std::string_view GrblWaitResultName(GrblWaitResult result) {
   switch (result) {
     case GrblWaitResult::kIdle:
@@ -170,6 +178,8 @@ std::string_view GrblWaitResultName(GrblWaitResult result) {
       return "alarm";
     case GrblWaitResult::kDisconnected:
       return "disconnected";
+    case GrblWaitResult::kHeld:
+      return "held";
   }
   return "?";
 }
@@ -423,6 +433,38 @@ bool GrblClient::Running(const std::string& what) {
   return true;
 }
 
+bool GrblClient::EndFeedHold(const std::string& what) {
+  std::optional<GrblStatusSample> sample = LatestStatus();
+  if (!sample || sample->status.state != GrblMachineState::kHold) return false;
+  // Hold:1 still decelerates: a reset now would stop the steppers dead and lose the position.
+  const auto deadline = Clock::now() + options_.reset_timeout;
+  while (!HeldReport(sample) && Clock::now() < deadline) {
+    sample = QueryStatus(options_.query_timeout);
+  }
+  if (!HeldReport(sample)) {
+    throw GrblError(what + " is in a feed hold that does not come to a stop (" +
+                    (sample ? sample->status.state_text : std::string("no status report")) +
+                    " after " + std::to_string(options_.reset_timeout.count()) + " ms)");
+  }
+  spdlog::warn(
+      "grbl: {} stands in a feed hold ({}:{}): a soft reset ends it (a completed hold "
+      "keeps the position)",
+      what, sample->status.state_text, sample->status.substate);
+  std::uint64_t resets_before = 0;
+  {
+    std::lock_guard lock(mu_);
+    resets_before = stats_.resets;
+  }
+  WriteRealtime('\x18');
+  std::unique_lock lock(mu_);
+  if (!cv_.wait_for(lock, options_.reset_timeout,
+                    [&] { return stats_.resets > resets_before || !connected_; }) ||
+      !connected_) {
+    throw GrblError("no welcome from " + what + " after the soft reset that ends its feed hold");
+  }
+  return true;
+}
+
 void GrblClient::DiscardEarlierSessionReplies(milliseconds quiet, milliseconds limit) {
   const auto deadline = Clock::now() + limit;
   std::unique_lock lock(mu_);
@@ -483,7 +525,9 @@ GrblMachineInfo GrblClient::Handshake() {
   };
   const bool welcomed = wait_welcome(options_.welcome_timeout);
   const bool running = !welcomed && Running(what);
-  if (running) DiscardEarlierSessionReplies(milliseconds(100), milliseconds(1000));
+  // Nothing is answered in a hold once the planner is full ($I and $$ included): end it first.
+  const bool ended_hold = running && EndFeedHold(what);
+  if (running && !ended_hold) DiscardEarlierSessionReplies(milliseconds(100), milliseconds(1000));
   if (!welcomed && !running) {
     spdlog::info("grbl: no welcome from {} within {} ms, sending a soft reset", what,
                  options_.welcome_timeout.count());
@@ -513,6 +557,7 @@ GrblMachineInfo GrblClient::Handshake() {
   std::lock_guard lock(mu_);
   if (!connected_) throw TransportClosed(what + " closed during the handshake");
   info_.rx_buffer_bytes = rx_buffer_bytes_;
+  info_.ended_feed_hold = ended_hold;
   if (info_.version.empty()) {
     // No welcome (taken as it was): the version from $I's [VER:1.1h.20190825:].
     const std::size_t second_dot = info_.build.find('.', info_.build.find('.') + 1);
@@ -958,15 +1003,23 @@ std::optional<GrblStatusSample> GrblClient::QueryStatus(std::chrono::millisecond
   return latest_status_;
 }
 
+bool GrblClient::Held() const {
+  std::lock_guard lock(mu_);
+  return HeldReport(latest_status_);
+}
+
 GrblWaitResult GrblClient::WaitIdle(std::chrono::milliseconds timeout) {
   const auto deadline = Clock::now() + timeout;
   {
     std::unique_lock lock(mu_);
+    // Lines held in the planner by a feed hold are never answered: stop waiting at the hold.
     const bool drained = cv_.wait_until(lock, deadline, [&] {
-      return !connected_ || alarmed_ || (in_flight_.empty() && queue_.empty());
+      return !connected_ || alarmed_ || HeldReport(latest_status_) ||
+             (in_flight_.empty() && queue_.empty());
     });
     if (!connected_) return GrblWaitResult::kDisconnected;
     if (alarmed_) return GrblWaitResult::kAlarm;
+    if (HeldReport(latest_status_)) return GrblWaitResult::kHeld;
     if (!drained) return GrblWaitResult::kTimeout;
   }
   // Two consecutive fresh Idle reports: GRBL may report Idle in the instant between the ok of
@@ -979,6 +1032,7 @@ GrblWaitResult GrblClient::WaitIdle(std::chrono::milliseconds timeout) {
     if (!connected_) return GrblWaitResult::kDisconnected;
     if (alarmed_) return GrblWaitResult::kAlarm;
     if (!sample) continue;
+    if (HeldReport(sample)) return GrblWaitResult::kHeld;
     const bool busy = !in_flight_.empty() || !queue_.empty();
     if (!busy && sample->status.state == GrblMachineState::kIdle) {
       if (++idle_reports >= 2) return GrblWaitResult::kIdle;

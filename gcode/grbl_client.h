@@ -142,6 +142,9 @@ struct GrblMachineInfo {
   int rx_buffer_bytes = 0;               // the RX size the client counts against
   bool rx_buffer_from_firmware = false;  // true when $I reported it
   std::map<int, double> settings;        // $$ numeric values ($110-$112 mm/min, $120-$122 mm/s^2)
+  // The controller stood in a feed hold when the port opened and the handshake ended it with a
+  // soft reset (a completed hold keeps the position; the held lines are dropped).
+  bool ended_feed_hold = false;
 
   std::optional<double> Setting(int number) const;
 };
@@ -153,7 +156,9 @@ struct GrblStatusSample {
   std::chrono::steady_clock::time_point received_at{};
 };
 
-enum class GrblWaitResult { kIdle, kTimeout, kAlarm, kDisconnected };
+// kHeld: the controller stands in a completed feed hold (Hold:0), which only a cycle start (~) or
+// a soft reset ends: waiting longer would not make it idle.
+enum class GrblWaitResult { kIdle, kTimeout, kAlarm, kDisconnected, kHeld };
 std::string_view GrblWaitResultName(GrblWaitResult result);
 
 struct GrblVerifyResult {
@@ -249,8 +254,12 @@ class GrblClient {
   std::optional<GrblStatusSample> LatestStatus() const;
   // Sends '?' (respecting the rate limit) and waits for a report received after it.
   std::optional<GrblStatusSample> QueryStatus(std::chrono::milliseconds timeout);
-  // Waits until nothing is queued or in flight and two consecutive fresh reports say Idle.
+  // Waits until nothing is queued or in flight and two consecutive fresh reports say Idle; kHeld
+  // as soon as a report says the controller stands in a completed feed hold.
   GrblWaitResult WaitIdle(std::chrono::milliseconds timeout);
+  // The latest report says Hold:0 (or Hold without a substate): stopped in a feed hold, by '!'
+  // from a host, a hold button, or a '!' that noise made of another byte.
+  bool Held() const;
   // WaitIdle, then compares the reported machine position with `expected_mpos` (mm). On success
   // the position becomes trusted.
   GrblVerifyResult VerifyPosition(const Eigen::Vector3d& expected_mpos, double tolerance_mm,
@@ -284,6 +293,8 @@ class GrblClient {
   GrblMachineInfo Handshake();
   // During the handshake, without a welcome: true when the controller answers a status query.
   bool Running(const std::string& what);
+  // Running() found it in a feed hold: waits for Hold:0, then a soft reset. False if not held.
+  bool EndFeedHold(const std::string& what);
   // After Running(): waits until nothing has arrived for `quiet` (at most `limit`), then forgets
   // every reply and status report received so far. A controller that did not reset may still
   // send what an earlier session asked for (its oks, its status reports) after the port opens;

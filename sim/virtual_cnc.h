@@ -175,6 +175,7 @@ struct VirtualCncStats {
   std::uint64_t injected_drops = 0;       // both directions
   std::uint64_t injected_garbles = 0;     // both directions
   std::uint64_t lines = 0;                // lines executed (ok or error)
+  std::uint64_t dwells = 0;               // G4 dwells begun (a probe's press has one)
   std::uint64_t errors = 0;
   std::uint64_t alarms = 0;
   std::uint64_t resets = 0;  // soft resets (0x18 and internal)
@@ -268,6 +269,11 @@ class VirtualCnc {
   // ResetNow() at the start of the next G4 dwell the controller executes (the planner just
   // emptied, the tool at rest where the motion before it ended: at the bottom of a press).
   void ResetDuringNextDwell();
+  // GRBL's feed-hold input pin (a hold button on the machine): as a received '!'.
+  void FeedHoldPin();
+  // The next `ok` or `error:N` reply is never sent (noise destroyed it; the line was executed);
+  // `instead` is sent in its place (what noise left of it: "" for nothing).
+  void LoseNextReply(const std::string& instead = "");
   // The controller sends `bytes` to the host as they are (paced, and subject to the CncToHost
   // faults, like any output). Without reset_on_open, bytes sent while no host has the port open
   // wait in the pty and are the first thing the next host reads (stale "ok", "error:9" or

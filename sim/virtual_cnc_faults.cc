@@ -42,6 +42,19 @@ void VirtualCnc::Impl::ResetNow() {
   McReset();
 }
 
+// GRBL 1.1h: the feed-hold pin's ISR (CONTROL_PIN_INDEX_FEED_HOLD) sets EXEC_FEED_HOLD, as '!'.
+void VirtualCnc::Impl::FeedHoldPin() {
+  std::lock_guard<std::mutex> lk(mu_);
+  if (stop_ || !powered_) return;
+  rt_feed_hold_ = true;
+  cv_.notify_all();
+}
+
+void VirtualCnc::Impl::LoseNextReply(const std::string& instead) {
+  std::lock_guard<std::mutex> lk(mu_);
+  lose_replies_.push_back(instead);
+}
+
 void VirtualCnc::Impl::SendRaw(const std::string& bytes) {
   std::lock_guard<std::mutex> lk(mu_);
   Transmit(bytes);
@@ -60,6 +73,12 @@ void VirtualCnc::ResetNow() {
 }
 void VirtualCnc::ResetDuringNextDwell() {
   impl_->ResetDuringNextDwell();
+}
+void VirtualCnc::FeedHoldPin() {
+  impl_->FeedHoldPin();
+}
+void VirtualCnc::LoseNextReply(const std::string& instead) {
+  impl_->LoseNextReply(instead);
 }
 void VirtualCnc::SendRaw(const std::string& bytes) {
   impl_->SendRaw(bytes);

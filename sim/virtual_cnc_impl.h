@@ -224,6 +224,8 @@ class VirtualCnc::Impl {
   }
   void SendRaw(const std::string& bytes);
   std::size_t PendingOutputBytes() const;
+  void FeedHoldPin();
+  void LoseNextReply(const std::string& instead);
 
  private:
   using Lock = std::unique_lock<std::mutex>;
@@ -384,7 +386,8 @@ class VirtualCnc::Impl {
   LinkFaults to_cnc_, to_host_;
   Clock::time_point stall_until_{};
   std::optional<ArmedAlarm> armed_alarm_;
-  bool reset_at_dwell_ = false;  // ResetDuringNextDwell()
+  bool reset_at_dwell_ = false;           // ResetDuringNextDwell()
+  std::deque<std::string> lose_replies_;  // LoseNextReply(): what each lost reply becomes
   bool lose_position_ = false;
 
   // Dialect state.

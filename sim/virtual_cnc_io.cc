@@ -66,6 +66,12 @@ void VirtualCnc::Impl::Emit(const std::string& s) {
   // The firmware thread may still be unwinding the run of a previous power-up (e.g. a dwell
   // cut short by PowerCycle()): that code no longer exists on the board, its output is not sent.
   if (boot_id_ != running_boot_) return;
+  if (!lose_replies_.empty() && (s.rfind("ok\r\n", 0) == 0 || s.rfind("error:", 0) == 0)) {
+    const std::string instead = std::move(lose_replies_.front());  // LoseNextReply()
+    lose_replies_.pop_front();
+    if (!instead.empty()) Transmit(instead);
+    return;
+  }
   Transmit(s);
 }
 

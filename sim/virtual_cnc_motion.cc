@@ -90,6 +90,7 @@ void VirtualCnc::Impl::McDwell(Lock& lk, double seconds) {
   if (state_ == GrblState::kCheck) return;
   Synchronize(lk);
   if (abort_) return;
+  ++stats_.dwells;
   if (std::exchange(reset_at_dwell_, false)) McReset();
   // delay_sec(seconds, DELAY_MODE_DWELL): ceil(seconds / 50 ms) steps of 50 ms, real-time
   // commands served between steps (a feed hold suspends the dwell).

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <numbers>
 #include <stdexcept>
+#include <string>
 #include <thread>
 
 #include "sim/ground_truth.h"
@@ -102,7 +103,11 @@ Frame VirtualRig::NextFrame() {
       scale > 0.0 ? std::min(options_.exposure_s / scale, period_s) : period_s * 0.5;
   const auto now = std::chrono::steady_clock::now();
   const double since = std::chrono::duration<double>(now - clock_start_).count();
-  const auto k = static_cast<std::uint64_t>(std::floor(since / period_s)) + 1;
+  auto k = static_cast<std::uint64_t>(std::floor(since / period_s)) + 1;
+  if (const int drop = drop_pending_.exchange(0); drop > 0) {
+    k += static_cast<std::uint64_t>(drop);  // those frames are exposed, never delivered
+    frames_dropped_ += drop;
+  }
   const auto end = clock_start_ + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
                                       std::chrono::duration<double>(k * period_s));
   std::this_thread::sleep_until(end);
@@ -112,6 +117,7 @@ Frame VirtualRig::NextFrame() {
   frame.exposure = std::chrono::microseconds(static_cast<long long>(exposure_s * 1e6));
   frame.sequence = k;
   ++frame_index_;
+  const bool corrupted = DamageIfDue(&frame.image);
   if (options_.frame_log_capacity > 0) {
     ServedFrame record;
     record.sequence = frame.sequence;
@@ -119,11 +125,49 @@ Frame VirtualRig::NextFrame() {
     record.exposure = frame.exposure;
     record.machine_position = *SimGroundTruth::LastFrame(*camera_).machine_position;
     record.fingerprint = FrameFingerprint(frame.image);
+    record.corrupted = corrupted;
     std::lock_guard<std::mutex> lock(log_mutex_);
     served_.push_back(record);
     while (served_.size() > options_.frame_log_capacity) served_.pop_front();
   }
   return frame;
+}
+
+bool VirtualRig::DamageIfDue(cv::Mat* image) {
+  int pending = corrupt_pending_.load();
+  while (pending > 0 && !corrupt_pending_.compare_exchange_weak(pending, pending - 1)) {
+  }
+  if (pending <= 0) return false;
+  ++frames_corrupted_;
+  if (fault_rng_() % 4 == 0) {
+    image->setTo(cv::Scalar::all(0));
+    return true;
+  }
+  // 2-15 % of the rows, anywhere: noise as a broken transfer leaves it.
+  const int rows = std::max(1, image->rows * (2 + static_cast<int>(fault_rng_() % 14)) / 100);
+  const int from =
+      static_cast<int>(fault_rng_() % static_cast<std::uint64_t>(image->rows - rows + 1));
+  for (int r = from; r < from + rows; ++r) {
+    auto* p = image->ptr<std::uint8_t>(r);
+    for (std::size_t i = 0; i < image->cols * image->elemSize(); ++i) {
+      p[i] = static_cast<std::uint8_t>(fault_rng_());
+    }
+  }
+  return true;
+}
+
+void VirtualRig::DropNextFrames(int n) {
+  if (n < 0)
+    throw std::invalid_argument("VirtualRig::DropNextFrames: n must be >= 0, got " +
+                                std::to_string(n));
+  drop_pending_ += n;
+}
+
+void VirtualRig::CorruptNextFrames(int n) {
+  if (n < 0)
+    throw std::invalid_argument("VirtualRig::CorruptNextFrames: n must be >= 0, got " +
+                                std::to_string(n));
+  corrupt_pending_ += n;
 }
 
 std::vector<ServedFrame> VirtualRig::ServedFrames() const {

@@ -5,12 +5,14 @@
 // exactly as it reaches real hardware. For tests, the demo and benchmarks.
 
 #include <array>
+#include <atomic>
 #include <chrono>
 #include <cstdint>
 #include <deque>
 #include <filesystem>
 #include <memory>
 #include <mutex>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -53,6 +55,8 @@ struct ServedFrame {
   Eigen::Vector3d machine_position = Eigen::Vector3d::Zero();
   // B, G, R of the image at FingerprintPixels(width, height), pixel by pixel.
   std::array<std::uint8_t, 3 * kFingerprintPixels> fingerprint{};
+  // Served damaged (CorruptNextFrames): no capture may count it as a press frame.
+  bool corrupted = false;
 };
 
 // The kFingerprintPixels pixels (x, y) a ServedFrame keeps for a width x height image: a
@@ -85,8 +89,20 @@ class VirtualRig {
   // Thread-safe.
   std::vector<ServedFrame> ServedFrames() const;
 
+  // --- Camera faults (thread-safe; they add to what is pending) ---
+  // The next n frames are never delivered (a USB hiccup, a full buffer): the frame after them is
+  // served in their place, its sequence number showing the gap.
+  void DropNextFrames(int n);
+  // The next n frames are served damaged: at random, a band of garbage rows (a corrupt transfer)
+  // or a black frame (a sensor timeout). Logged with ServedFrame::corrupted.
+  void CorruptNextFrames(int n);
+  // Camera faults injected so far.
+  int FramesDropped() const { return frames_dropped_.load(); }
+  int FramesCorrupted() const { return frames_corrupted_.load(); }
+
  private:
   Frame NextFrame();
+  bool DamageIfDue(cv::Mat* image);
 
   VirtualRigOptions options_;
   std::shared_ptr<const SimRig> rig_;
@@ -95,6 +111,9 @@ class VirtualRig {
   std::filesystem::path socket_path_;
   std::chrono::steady_clock::time_point clock_start_;
   std::uint64_t frame_index_ = 0;
+  std::atomic<int> drop_pending_{0}, corrupt_pending_{0};
+  std::atomic<int> frames_dropped_{0}, frames_corrupted_{0};
+  std::mt19937_64 fault_rng_{12345};  // NextFrame's thread only
   mutable std::mutex log_mutex_;
   std::deque<ServedFrame> served_;
   std::unique_ptr<FrameServer> server_;

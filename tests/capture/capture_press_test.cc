@@ -92,6 +92,7 @@ TEST_CASE("CapturePress averages per pixel and per channel with round-to-nearest
   }
   PressCaptureOptions options;
   options.frames_to_average = 3;
+  options.reject_outliers = false;  // random frames disagree everywhere
   const auto result = CapturePress(source, kSyncOk, options);
   REQUIRE(result.ok());
   int mismatches = 0;
@@ -167,6 +168,122 @@ TEST_CASE("CapturePress gives up after max_stale_frames stale frames", "[capture
   CHECK(gs360::ToString(result.status) == "too many stale frames");
 }
 
+namespace {
+
+// A settled press as a camera gives it: a scene plus a few DN of noise per frame.
+// (cv::theRNG(): seed it for a repeatable test.)
+cv::Mat NoisyFrame(const cv::Mat& scene) {
+  cv::Mat noise(scene.size(), CV_16SC3);
+  cv::randn(noise, 0, 3);
+  cv::Mat out;
+  cv::add(scene, noise, out, cv::noArray(), CV_8UC3);
+  return out;
+}
+
+cv::Mat Scene() {
+  cv::Mat scene(48, 64, CV_8UC3);
+  for (int r = 0; r < scene.rows; ++r) {
+    for (int c = 0; c < scene.cols; ++c) {
+      scene.at<cv::Vec3b>(r, c) = cv::Vec3b(static_cast<uchar>(60 + c), static_cast<uchar>(90 + r),
+                                            static_cast<uchar>(120 + (r + c) % 50));
+    }
+  }
+  return scene;
+}
+
+// A transfer error: `rows` rows of random bytes from row `from`.
+cv::Mat Garbled(cv::Mat frame, int from, int rows) {
+  cv::randu(frame.rowRange(from, from + rows), cv::Scalar::all(0), cv::Scalar::all(256));
+  return frame;
+}
+
+double MeanAbsDiff(const cv::Mat& a, const cv::Mat& b) {
+  cv::Mat d;
+  cv::absdiff(a, b, d);
+  return cv::mean(d.reshape(1))[0];
+}
+
+}  // namespace
+
+TEST_CASE("CapturePress leaves a garbled frame out of the average and reads another",
+          "[capture_press]") {
+  cv::theRNG().state = 11;
+  const cv::Mat scene = Scene();
+  PressCaptureOptions options;
+  options.frames_to_average = 3;
+  for (int bad = 0; bad < 3; ++bad) {
+    INFO("garbled frame " << bad);
+    FakeFrameSource source;
+    for (int k = 0; k < 4; ++k) {
+      cv::Mat f = NoisyFrame(scene);
+      source.Push(kSyncOk + milliseconds(1 + k), k == bad ? Garbled(f, 10, 3) : f);
+    }
+    const auto result = CapturePress(source, kSyncOk, options);
+    REQUIRE(result.ok());
+    CHECK(result.outliers_rejected == 1);
+    CHECK(result.frames_used == 3);
+    CHECK(source.remaining() == 0);
+    CHECK(MeanAbsDiff(result.image, scene) < 2.5);  // noise averaged, no garbage in it
+    CHECK(result.last_sequence == 3);
+    CHECK(result.first_sequence == (bad == 0 ? 1u : 0u));
+  }
+  SECTION("without the check, the garbage is averaged in") {
+    options.reject_outliers = false;
+    FakeFrameSource source;
+    for (int k = 0; k < 3; ++k) {
+      cv::Mat f = NoisyFrame(scene);
+      source.Push(kSyncOk + milliseconds(1 + k), k == 1 ? Garbled(f, 10, 3) : f);
+    }
+    const auto result = CapturePress(source, kSyncOk, options);
+    REQUIRE(result.ok());
+    CHECK(result.outliers_rejected == 0);
+    CHECK(MeanAbsDiff(result.image.rowRange(10, 13), scene.rowRange(10, 13)) > 10.0);
+  }
+}
+
+TEST_CASE(
+    "CapturePress with two frames that disagree reads a third to decide, and gives up "
+    "when none agree",
+    "[capture_press]") {
+  cv::theRNG().state = 12;
+  const cv::Mat scene = Scene();
+  PressCaptureOptions options;
+  options.frames_to_average = 2;
+  {
+    FakeFrameSource source;
+    source.Push(kSyncOk + milliseconds(1), Garbled(NoisyFrame(scene), 0, 48));
+    source.Push(kSyncOk + milliseconds(2), NoisyFrame(scene));
+    source.Push(kSyncOk + milliseconds(3), NoisyFrame(scene));
+    const auto result = CapturePress(source, kSyncOk, options);
+    REQUIRE(result.ok());
+    CHECK(result.outliers_rejected == 1);
+    CHECK(result.first_sequence == 1);
+    CHECK(MeanAbsDiff(result.image, scene) < 3.0);
+  }
+  {
+    // Every frame torn differently: K + max_outlier_frames frames read, then a status.
+    options.max_outlier_frames = 2;
+    FakeFrameSource source;
+    for (int k = 0; k < 6; ++k) {
+      source.Push(kSyncOk + milliseconds(1 + k), Garbled(NoisyFrame(scene), 8 * k, 8));
+    }
+    const auto result = CapturePress(source, kSyncOk, options);
+    CHECK(result.status == PressCaptureStatus::kInconsistent);
+    CHECK(gs360::ToString(result.status) == "frames disagree");
+    CHECK(result.image.empty());
+    CHECK(source.remaining() == 2);
+  }
+  {
+    // K = 1 has nothing to compare with: the first fresh frame is the capture.
+    options.frames_to_average = 1;
+    FakeFrameSource source;
+    source.Push(kSyncOk + milliseconds(1), 7);
+    const auto result = CapturePress(source, kSyncOk, options);
+    REQUIRE(result.ok());
+    CHECK(result.outliers_rejected == 0);
+  }
+}
+
 TEST_CASE("CapturePress rejects frames that change size or are not 8-bit BGR", "[capture_press]") {
   PressCaptureOptions options;
   options.frames_to_average = 2;
@@ -195,6 +312,17 @@ TEST_CASE("PressCaptureOptions::Check names the bad field", "[capture_press]") {
   options = {};
   options.max_stale_frames = -1;
   CHECK_THROWS_WITH(options.Check(), Catch::Contains("max_stale_frames") && Catch::Contains("-1"));
+  options = {};
+  options.outlier_dn = 0;
+  CHECK_THROWS_WITH(options.Check(), Catch::Contains("outlier_dn") && Catch::Contains("0"));
+  options = {};
+  options.outlier_fraction = 1.5;
+  CHECK_THROWS_WITH(options.Check(), Catch::Contains("outlier_fraction") && Catch::Contains("1.5"));
+  options = {};
+  options.max_outlier_frames = -2;
+  CHECK_THROWS_WITH(options.Check(),
+                    Catch::Contains("max_outlier_frames") && Catch::Contains("-2"));
+  options.max_stale_frames = -1;
   FakeFrameSource source;
   source.Push(kSyncOk + milliseconds(1), 1);
   CHECK_THROWS_AS(CapturePress(source, kSyncOk, options), std::invalid_argument);

@@ -147,3 +147,32 @@ TEST_CASE("the camera's tilt and offset and the LEDs' layout are set from the co
   args.led_heights = {0.0};
   CHECK_THROWS_WITH(cli::ApplySimArgs(args, &bad), Contains("fin_led_heights[0]"));
 }
+
+TEST_CASE("demo with faults resumes as a user would and every frame is at its press point",
+          "[cli][demo][fault]") {
+  TempDir dir;
+  const auto r = Gs360(
+      "demo --probes 90 --no-calibrate --faults all --fault-every 12 --seed 2 "
+      "--data-dir " +
+      (dir.path / "data").string());
+  INFO(r.out);
+  REQUIRE(r.status == 0);
+  CHECK_THAT(r.out, Contains("faults: all, one every ~12 presses"));
+  CHECK_THAT(r.out, Contains("  injected: ") && Contains(" faults ("));
+  CHECK_THAT(r.out, Contains("0 taken off the press point, 0 unverifiable"));
+  RunDatabaseOptions ro;
+  ro.read_only = true;
+  RunDatabase db(dir.path / "data" / "gs360.db", ro);
+  CHECK(db.CountProbes(1).planned == 0);
+  CHECK(db.GetRun(1)->state == RunState::kDone);
+}
+
+TEST_CASE("an unknown fault kind is a usage error naming the known ones", "[cli][demo][fault]") {
+  for (const char* cmd :
+       {"demo --faults drop,meteor", "sim-rig --faults meteor", "bench soak --faults meteor"}) {
+    INFO(cmd);
+    const auto r = Gs360(cmd);
+    CHECK(r.status == 2);
+    CHECK_THAT(r.out, Contains("unknown fault 'meteor'") && Contains("frame-corrupt"));
+  }
+}

@@ -140,8 +140,9 @@ struct FaultRun {
 };
 
 // Runs with `inject` fired after `after` committed probes; if the run stops, resumes once.
-FaultRun RunWithFault(RigFixture& f, std::int64_t after, const std::function<void()>& inject) {
-  f.config.engine.sync_timeout_s = 5.0;
+FaultRun RunWithFault(RigFixture& f, std::int64_t after, const std::function<void()>& inject,
+                      double sync_timeout_s = 5.0) {
+  f.config.engine.sync_timeout_s = sync_timeout_s;
   RunEngine engine(f.db);
   const auto run_id = engine.CreateRun(f.config);
   FaultRun out;
@@ -191,6 +192,77 @@ TEST_CASE("fault: the machine stalls its replies for a while", "[daemon][fault]"
   const FaultRun r =
       RunWithFault(f, 4, [&] { f.rig->cnc().StallReplies(std::chrono::milliseconds(1500)); });
   CHECK(r.first.outcome == RunOutcome::kDone);  // shorter than the sync timeout: just slower
+}
+
+namespace {
+
+std::string Events(const RigFixture& f) {
+  std::string all;
+  for (const EventRecord& e : RunDatabase(f.db).ListEvents(1, 0, 10000)) all += e.message + "\n";
+  return all;
+}
+
+}  // namespace
+
+// With the default sync timeout (120 s): a lost line or reply must not cost it. Noticed once the
+// controller stands idle with the line unanswered; the recovery finds the tool on the path sent.
+TEST_CASE("fault: a reply lost on the line is noticed when the controller stands idle",
+          "[daemon][fault]") {
+  RigFixture f("lost-reply", 30, 0.0);
+  const FaultRun r = RunWithFault(
+      f, 4, [&] { f.rig->cnc().LoseNextReply(); }, 120.0);
+  CHECK(r.first.outcome == RunOutcome::kDone);
+  CHECK(r.first.recoveries == 1);
+  const std::string events = Events(f);
+  INFO(events);
+  CHECK_THAT(events, Catch::Contains("unanswered: a line or its reply was lost"));
+  CHECK_THAT(events, !Catch::Contains("no reply within"));
+}
+
+TEST_CASE("fault: a garbled reply is noticed as lost, not waited for", "[daemon][fault]") {
+  RigFixture f("garbled-ok", 30, 0.0);
+  // "ok\r\n" made unreadable: what a bit flip in the 'o' or 'k' gives.
+  const FaultRun r = RunWithFault(
+      f, 4, [&] { f.rig->cnc().LoseNextReply("o\x0b\r\n"); }, 120.0);
+  CHECK(r.first.outcome == RunOutcome::kDone);
+  const std::string events = Events(f);
+  INFO(events);
+  CHECK_THAT(events, Catch::Contains("a reply was lost (the serial line brought 1 unreadable"));
+}
+
+TEST_CASE("fault: a feed hold the run did not ask for stops it, and its resume ends the hold",
+          "[daemon][fault]") {
+  RigFixture f("hold", 30, 0.0);
+  const FaultRun r = RunWithFault(
+      f, 4, [&] { f.rig->cnc().FeedHoldPin(); }, 120.0);
+  CHECK(r.first.outcome == RunOutcome::kFailed);
+  CHECK_THAT(r.first.message, Catch::Contains("feed hold") && Catch::Contains("`resume`"));
+  CHECK(r.final.outcome == RunOutcome::kDone);
+  const std::string events = Events(f);
+  INFO(events);
+  CHECK_THAT(events, Catch::Contains("stood in a feed hold: a soft reset ended it"));
+  CHECK_THAT(events, !Catch::Contains("no reply within"));
+}
+
+TEST_CASE("fault: corrupt and dropped camera frames are left out, never averaged into a press",
+          "[daemon][fault]") {
+  RigFixture f("frames", 60, 0.0);
+  RunEngine engine(f.db);
+  const auto run_id = engine.CreateRun(f.config);
+  int injected = 0;
+  engine.SetProgressCallback([&](const RunProgress& p) {
+    if (p.counts.captured >= 3 * (injected + 1) && injected < 8) {
+      ++injected;
+      f.rig->CorruptNextFrames(1 + injected % 2);
+      f.rig->DropNextFrames(injected % 3);
+    }
+  });
+  const RunReport report = engine.Execute(run_id);
+  CHECK(report.outcome == RunOutcome::kDone);
+  CHECK(injected == 8);
+  CHECK(f.rig->FramesCorrupted() >= 8);
+  CheckCommitted(f, run_id);  // a press with a damaged frame in it would be unverifiable
+  CHECK_THAT(Events(f), Catch::Contains("left out: they disagreed with the others"));
 }
 
 TEST_CASE("fault: USB unplug, the controller comes back under another name", "[daemon][fault]") {
