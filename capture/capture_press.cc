@@ -118,6 +118,12 @@ void PressCaptureOptions::Check() const {
     throw std::invalid_argument("PressCaptureOptions.outlier_fraction must be in (0, 1], got " +
                                 std::to_string(outlier_fraction));
   }
+  if (reject_outliers && frames_to_average > kMaxFramesCompared) {
+    throw std::invalid_argument(
+        "PressCaptureOptions.frames_to_average must be <= " + std::to_string(kMaxFramesCompared) +
+        " with reject_outliers (every frame is kept to compare), got " +
+        std::to_string(frames_to_average));
+  }
   if (max_outlier_frames < 0) {
     throw std::invalid_argument("PressCaptureOptions.max_outlier_frames must be >= 0, got " +
                                 std::to_string(max_outlier_frames));

@@ -21,6 +21,8 @@
 
 namespace gs360 {
 
+inline constexpr int kMaxFramesCompared = 50;
+
 struct PressCaptureOptions {
   // K: fresh frames averaged, in [1, 1000].
   int frames_to_average = 3;
@@ -33,8 +35,9 @@ struct PressCaptureOptions {
   // glitching sensor), and more are read in their place. Two frames disagree when more than
   // `outlier_fraction` of their pixel values (each channel counted) differ by more than
   // `outlier_dn`: sensor noise never does that to a settled press, a torn or garbled frame does.
-  // Needs K >= 2 (K = 1 has nothing to compare with). outlier_dn in [1, 255], outlier_fraction
-  // in (0, 1], max_outlier_frames >= 0.
+  // Needs K >= 2 (K = 1 has nothing to compare with) and keeps every frame read, so K <=
+  // kMaxFramesCompared with it on. outlier_dn in [1, 255], outlier_fraction in (0, 1],
+  // max_outlier_frames >= 0.
   bool reject_outliers = true;
   int outlier_dn = 40;
   double outlier_fraction = 0.005;

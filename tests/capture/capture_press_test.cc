@@ -319,6 +319,11 @@ TEST_CASE("PressCaptureOptions::Check names the bad field", "[capture_press]") {
   options.outlier_fraction = 1.5;
   CHECK_THROWS_WITH(options.Check(), Catch::Contains("outlier_fraction") && Catch::Contains("1.5"));
   options = {};
+  options.frames_to_average = 51;
+  CHECK_THROWS_WITH(options.Check(), Catch::Contains("<= 50 with reject_outliers"));
+  options.reject_outliers = false;
+  CHECK_NOTHROW(options.Check());
+  options = {};
   options.max_outlier_frames = -2;
   CHECK_THROWS_WITH(options.Check(),
                     Catch::Contains("max_outlier_frames") && Catch::Contains("-2"));
