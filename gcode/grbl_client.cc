@@ -450,16 +450,7 @@ bool GrblClient::EndFeedHold(const std::string& what) {
       "grbl: {} stands in a feed hold ({}:{}): a soft reset ends it (a completed hold "
       "keeps the position)",
       what, sample->status.state_text, sample->status.substate);
-  std::uint64_t resets_before = 0;
-  {
-    std::lock_guard lock(mu_);
-    resets_before = stats_.resets;
-  }
-  WriteRealtime('\x18');
-  std::unique_lock lock(mu_);
-  if (!cv_.wait_for(lock, options_.reset_timeout,
-                    [&] { return stats_.resets > resets_before || !connected_; }) ||
-      !connected_) {
+  if (!SoftReset()) {
     throw GrblError("no welcome from " + what + " after the soft reset that ends its feed hold");
   }
   return true;
