@@ -2,9 +2,11 @@
 
 #include <unistd.h>
 
+#include <chrono>
 #include <cmath>
 #include <fstream>
 #include <sstream>
+#include <thread>
 
 #include <spdlog/spdlog.h>
 
@@ -40,6 +42,28 @@ std::string Duration(double s) {
   return os.str();
 }
 
+// A machine URI naming a device file that is not there (unplugged; a pty whose other end
+// closed). Such a device's lock is let go at once: the kernel reuses tty names, and a new device
+// under the old name belongs to whoever opens it next.
+bool DeviceVanished(const std::string& uri) {
+  std::error_code ec;
+  return !uri.empty() && uri[0] == '/' && !std::filesystem::exists(uri, ec);
+}
+
+// The port lock, waiting up to a second for a daemon whose device vanished to let go of it (its
+// event pump notices within 200 ms).
+InstanceLock AcquirePortLock(const std::string& uri, const std::string& holder) {
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(1);
+  for (;;) {
+    try {
+      return InstanceLock::Acquire(MachineLockPath(uri), "the machine port " + uri, holder);
+    } catch (const LockHeldError&) {
+      if (std::chrono::steady_clock::now() > deadline) throw;
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    }
+  }
+}
+
 void WriteText(const std::filesystem::path& path, const std::string& text) {
   const std::filesystem::path tmp = path.string() + ".tmp";
   {
@@ -61,14 +85,21 @@ Daemon::Daemon(DaemonConfig config) : config_(std::move(config)) {
   data_lock_ = InstanceLock::Acquire(config_.data_dir / "gs360d.lock",
                                      "the data folder " + config_.data_dir.string(), holder);
   holder_ = holder;
-  if (!config_.run.machine.uri.empty()) {
-    port_lock_ = InstanceLock::Acquire(MachineLockPath(config_.run.machine.uri),
-                                       "the machine port " + config_.run.machine.uri, holder);
+  if (!config_.run.machine.uri.empty() && !DeviceVanished(config_.run.machine.uri)) {
+    port_lock_ = AcquirePortLock(config_.run.machine.uri, holder);
   }
   started_at_ = UnixNow();
   std::filesystem::create_directories(config_.data_dir / "runs");
   std::filesystem::create_directories(config_.data_dir / "meshes");
-  { RunDatabase create(config_.DatabasePath()); }  // creates or migrates the file
+  try {
+    RunDatabase create(config_.DatabasePath());  // creates or migrates the file
+  } catch (const StorageError& e) {
+    if (e.code() != StorageErrc::kReadOnly) throw;
+    throw std::runtime_error(std::string(e.what()) +
+                             ". gs360d records every probe in it: make the file and its folder "
+                             "writable for the user gs360d runs as, then start gs360d again "
+                             "(nothing in it was changed)");
+  }
   MarkDeadRunsInterrupted();
   engine_ = std::make_unique<RunEngine>(config_.DatabasePath());
   engine_->SetSafetyLimits(config_.limits);
@@ -110,14 +141,24 @@ void Daemon::Shutdown() {
 
 void Daemon::FollowPortLock() {
   if (config_.run.machine.uri.empty()) return;
-  const std::filesystem::path now = MachineLockPath(config_.run.machine.uri);
+  const std::string& uri = config_.run.machine.uri;
   std::lock_guard lock(port_lock_mutex_);
-  if (now == port_lock_.path()) return;
+  if (DeviceVanished(uri)) {
+    if (port_lock_.Held()) {
+      spdlog::info("gs360d: {} is gone: its lock {} is released until it is back", uri,
+                   port_lock_.path().string());
+      port_lock_.Release();
+    }
+    return;
+  }
+  const std::filesystem::path now = MachineLockPath(uri);
+  if (port_lock_.Held() && now == port_lock_.path()) return;
   try {
-    InstanceLock moved =
-        InstanceLock::Acquire(now, "the machine port " + config_.run.machine.uri, holder_);
-    spdlog::info("gs360d: {} now names another device: its lock moved from {} to {}",
-                 config_.run.machine.uri, port_lock_.path().string(), now.string());
+    InstanceLock moved = InstanceLock::Acquire(now, "the machine port " + uri, holder_);
+    if (port_lock_.path() != now) {
+      spdlog::info("gs360d: {} now names another device: its lock moved from {} to {}", uri,
+                   port_lock_.path().string(), now.string());
+    }
     port_lock_ = std::move(moved);
   } catch (const std::exception& e) {
     // Held by another daemon: keep ours; say so once per new name.

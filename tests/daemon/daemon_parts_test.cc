@@ -181,6 +181,34 @@ TEST_CASE("the event hub delivers in order, keeps the recent ones and wakes on c
   CHECK(hub.Closed());
 }
 
+TEST_CASE("a vanished device's port lock is let go until the device is back", "[daemon][lock]") {
+  // The kernel reuses tty names: a daemon whose pty or USB tty went away must not keep a lock
+  // that a new device under the same name (another rig, another daemon) then runs into.
+  const auto dir = std::filesystem::canonical(test::FreshDir("vanish"));
+  const auto tty = dir / "ttyACM0";
+  std::ofstream(tty).put('\n');
+  const DaemonConfig config = DaemonConfigFromToml(
+      "data_dir = \"data\"\n[machine]\nuri = \"" + tty.string() + "\"\n", "test.toml", dir);
+  Daemon daemon(config);
+  CHECK_THROWS_AS(InstanceLock::Acquire(MachineLockPath(tty.string()), "a", "test"), LockHeldError);
+  std::filesystem::remove(tty);
+  daemon.FollowPortLock();
+  {
+    InstanceLock taken = InstanceLock::Acquire(MachineLockPath(tty.string()), "a", "test");
+    CHECK(taken.Held());
+  }
+  std::ofstream(tty).put('\n');
+  daemon.FollowPortLock();
+  CHECK_THROWS_AS(InstanceLock::Acquire(MachineLockPath(tty.string()), "a", "test"), LockHeldError);
+  // A second daemon on the same port still gets a clear error (after its one-second wait).
+  const DaemonConfig second = DaemonConfigFromToml(
+      "data_dir = \"data2\"\n[machine]\nuri = \"" + tty.string() + "\"\n", "test.toml", dir);
+  CHECK_THROWS_WITH(Daemon(second), Catch::Contains("the machine port " + tty.string() +
+                                                    " is in use by gs360d pid"));
+  daemon.Shutdown();
+  std::filesystem::remove_all(dir);
+}
+
 TEST_CASE("the port lock follows the configured symlink to a replugged controller",
           "[daemon][lock]") {
   const auto dir = test::FreshDir("follow");
