@@ -1,11 +1,9 @@
 #include "geometry/mesh.h"
 
-#include <assimp/postprocess.h>
 #include <assimp/scene.h>
 
 #include <algorithm>
 #include <array>
-#include <assimp/Importer.hpp>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
@@ -16,6 +14,7 @@
 
 #include "base/hash.h"
 #include "geometry/assimp_export.h"
+#include "geometry/assimp_import.h"
 
 namespace gs360 {
 namespace {
@@ -718,6 +717,10 @@ void MeshLoadOptions::Check() const {
     throw std::invalid_argument("MeshLoadOptions.sensor_from_file must be finite");
   }
   repair.Check();
+  if (!(import_timeout_s > 0.0) || !std::isfinite(import_timeout_s)) {
+    throw std::invalid_argument("MeshLoadOptions.import_timeout_s must be finite and > 0, got " +
+                                std::to_string(import_timeout_s));
+  }
 }
 
 namespace {
@@ -765,37 +768,6 @@ void CheckPlyHeader(const std::filesystem::path& path) {
   throw MeshError("malformed PLY header in " + Quoted(path) + ": no end_header");
 }
 
-// Every face mesh of an assimp scene in one TriangleMesh; polygons become fans. Throws MeshError
-// for a face index past its mesh's vertices.
-TriangleMesh MeshFromScene(const aiScene& scene, const std::filesystem::path& path) {
-  TriangleMesh mesh;
-  for (unsigned m = 0; m < scene.mNumMeshes; ++m) {
-    const aiMesh* am = scene.mMeshes[m];
-    if (!(am->mPrimitiveTypes & (aiPrimitiveType_TRIANGLE | aiPrimitiveType_POLYGON))) continue;
-    const int offset = mesh.NumVertices();
-    for (unsigned i = 0; i < am->mNumVertices; ++i) {
-      const aiVector3D& v = am->mVertices[i];
-      mesh.vertices.emplace_back(v.x, v.y, v.z);
-    }
-    for (unsigned f = 0; f < am->mNumFaces; ++f) {
-      const aiFace& face = am->mFaces[f];
-      for (unsigned k = 0; k < face.mNumIndices; ++k) {
-        if (face.mIndices[k] >= am->mNumVertices) {
-          throw MeshError("mesh file " + Quoted(path) + ": face " + std::to_string(f) +
-                          " uses vertex " + std::to_string(face.mIndices[k]) + " of " +
-                          std::to_string(am->mNumVertices));
-        }
-      }
-      for (unsigned k = 2; k < face.mNumIndices; ++k) {
-        mesh.triangles.emplace_back(offset + static_cast<int>(face.mIndices[0]),
-                                    offset + static_cast<int>(face.mIndices[k - 1]),
-                                    offset + static_cast<int>(face.mIndices[k]));
-      }
-    }
-  }
-  return mesh;
-}
-
 }  // namespace
 
 TriangleMesh LoadMesh(const std::filesystem::path& path, const MeshLoadOptions& options,
@@ -814,19 +786,7 @@ TriangleMesh LoadMesh(const std::filesystem::path& path, const MeshLoadOptions& 
   }
 
   CheckPlyHeader(path);
-  Assimp::Importer importer;
-  // Keep only faces: drop points and lines. Polygons are split here, as fans, not by assimp's
-  // triangulation step, whose assertion aborts the process on some malformed faces (Debian's
-  // assimp 5.2 keeps its asserts; found by tests/fuzz).
-  importer.SetPropertyInteger(AI_CONFIG_PP_SBP_REMOVE,
-                              aiPrimitiveType_POINT | aiPrimitiveType_LINE);
-  const aiScene* scene =
-      importer.ReadFile(path.string(), aiProcess_PreTransformVertices | aiProcess_SortByPType);
-  if (scene == nullptr) {
-    throw MeshError("cannot parse mesh file " + Quoted(path) + ": " + importer.GetErrorString());
-  }
-
-  TriangleMesh mesh = MeshFromScene(*scene, path);
+  TriangleMesh mesh = geometry_internal::ImportMeshFile(path, options.import_timeout_s);
   if (mesh.triangles.empty()) throw MeshError("mesh file " + Quoted(path) + " has no triangles");
 
   int nonfinite = 0;

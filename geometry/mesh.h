@@ -147,6 +147,9 @@ struct MeshLoadOptions {
   // Throw MeshError when, after repair, the mesh is not closed except at the base (holes away
   // from the base plane, non-manifold or inconsistent edges).
   bool reject_open = false;
+  // The importer runs in a child process (a crash in it is an error, not the end of the caller);
+  // it is killed after this many seconds.
+  double import_timeout_s = 60.0;
 
   void Check() const;
 };
@@ -156,9 +159,10 @@ struct MeshLoadOptions {
 // split into triangle fans (right for convex faces). Vertex normals are computed from the
 // geometry (file normals are ignored: STL's are per face). Coordinates pass through float32
 // (assimp's ai_real): ~2e-6 mm at 30 mm. Throws MeshError naming the file for: missing or
-// unreadable file, an assimp parse error, no triangles, NaN/Inf vertices (with counts, if
-// reject_nonfinite), an open mesh (if reject_open). `report` (optional) receives the validation
-// report.
+// unreadable file, an assimp parse error, a crash of assimp or its running past
+// import_timeout_s (it reads the file in a child process), no triangles, NaN/Inf vertices (with
+// counts, if reject_nonfinite), an open mesh (if reject_open). `report` (optional) receives the
+// validation report.
 TriangleMesh LoadMesh(const std::filesystem::path& path, const MeshLoadOptions& options = {},
                       MeshReport* report = nullptr);
 

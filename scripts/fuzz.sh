@@ -4,9 +4,7 @@
 #   scripts/fuzz.sh                build the libFuzzer targets (tests/fuzz) with clang, ASan and
 #                                  UBSan in build-fuzz/ beside BUILD_DIR, then run each through
 #                                  CTest (label fuzz) on a fixed number of inputs from a fixed
-#                                  seed (about 15 s each; at most GS360_FUZZ_SECONDS, default 60);
-#                                  the mesh target is not among them (assimp crashes, see
-#                                  docs/benchmarks.md) and runs as below
+#                                  seed (about 15 s each; at most GS360_FUZZ_SECONDS, default 60)
 #   scripts/fuzz.sh NAME SECONDS   the same build, then one target (grbl_line, gcode_line,
 #                                  daemon_config, model_bundle, mesh or frame) for longer; its
 #                                  corpus keeps growing in build-fuzz/tests/fuzz/corpus/NAME

@@ -165,6 +165,33 @@ TEST_CASE("A built-in shape survives a binary STL round trip", "[mesh]") {
   CHECK(LoadMesh(dir / "finger.stl").Hash() == LoadMesh(dir / "finger.stl").Hash());
 }
 
+TEST_CASE("LoadMesh turns a crash or a hang of the importer into an error naming the file",
+          "[mesh]") {
+  const fs::path dir = TempDir() / "importer";
+  fs::create_directories(dir);
+  // Found by tests/fuzz (mesh, corpus regression-crash-2): assimp 5.2 dies of a bus error in its
+  // post-processing on this PLY. It reads files in a child process, so this one is an error.
+  WriteText(dir / "crashes.ply",
+            "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+            "property float z\nelement face 4\nproperty list uchar int vertex_indices\n"
+            "end_header\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 t z\nelement face 4\n"
+            "property list uchar int vertex_in0 1 3\n3 0 3 2\n3 1 2 3\n");
+  CHECK_THROWS_WITH(LoadMesh(dir / "crashes.ply"),
+                    Catch::Contains("crashes.ply") && Catch::Contains("crashed on it"));
+  // The process that asked is unharmed and reads the next file.
+  const TriangleMesh finger = SmallFinger();
+  gs360::WriteStlBinary(dir / "finger.stl", finger);
+  CHECK(LoadMesh(dir / "finger.stl").NumTriangles() == finger.NumTriangles());
+  // An importer that does not finish in time is killed.
+  MeshLoadOptions hasty;
+  hasty.import_timeout_s = 1e-4;
+  CHECK_THROWS_WITH(LoadMesh(dir / "finger.stl", hasty),
+                    Catch::Contains("finger.stl") && Catch::Contains("had not finished after"));
+  hasty.import_timeout_s = 0.0;
+  CHECK_THROWS_AS(LoadMesh(dir / "finger.stl", hasty), std::invalid_argument);
+  fs::remove_all(dir);
+}
+
 TEST_CASE("LoadMesh errors name the file and the problem", "[mesh]") {
   const fs::path dir = TempDir();
   try {
