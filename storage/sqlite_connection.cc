@@ -264,8 +264,7 @@ void Connection::Open(int target_version) {
     Throw(StorageErrc::kCannotOpen, "is a directory, not a database file");
   } else if (!options_.read_only) {
     if (std::string why; !Writable(path_, &why)) {
-      Throw(StorageErrc::kReadOnly, "the database file is not writable (" + why +
-                                        "); open it with read_only to read what it holds");
+      Throw(StorageErrc::kReadOnly, "the database file is not writable (" + why + ")");
     }
     if (std::string why; !Writable(dir, &why)) {
       Throw(StorageErrc::kReadOnly,

@@ -12,6 +12,7 @@
 #include <atomic>
 #include <cstdlib>
 #include <cstring>
+#include <fstream>
 #include <random>
 #include <set>
 #include <thread>
@@ -292,6 +293,51 @@ TEST_CASE("a second gs360d on the same data folder or the same machine port refu
   cli::DaemonClient client(first->url(), "");
   CHECK(client.Get("/api/v1/info")["name"] == "gs360d");
   CHECK(first->Stop() == 0);
+}
+
+TEST_CASE(
+    "storage: a read-only database stops gs360d naming the file and the run resumes once "
+    "it is writable",
+    "[daemon][storage]") {
+  test::RigFixture f("readonly", 40, 0.0);
+  const auto db_path = f.dir / "data" / "gs360.db";
+  {
+    auto daemon = test::StartDaemonProcess(f);
+    cli::DaemonClient client(daemon->url(), "");
+    client.Post("/api/v1/runs", {{"probes", 40}});
+    client.Post("/api/v1/runs/1/start");
+    WaitFor(client, 1, [](const Json& r) { return r["probes_done"].get<int>() >= 4; });
+    CHECK(daemon->Stop() == 0);
+  }
+  const std::int64_t before = ReadOnly(db_path).CountProbes(1).captured;
+  REQUIRE(before >= 4);
+  // The file loses its write permission (copied back by another user, a restored backup), and
+  // gs360d runs as a service user would: without root's capabilities, so the permission counts.
+  namespace fs = std::filesystem;
+  fs::permissions(db_path, fs::perms::owner_read | fs::perms::group_read | fs::perms::others_read);
+  const auto unprivileged = f.dir / "gs360d-unprivileged";
+  std::ofstream(unprivileged) << "#!/bin/sh\nexec setpriv --bounding-set=-all --inh-caps=-all '"
+                              << GS360_BINARY_DIR << "/daemon/gs360d' \"$@\"\n";
+  fs::permissions(unprivileged, fs::perms::owner_all);
+  CHECK_THROWS_WITH(cli::DaemonProcess(unprivileged, f.dir / "gs360d.toml", f.dir / "data",
+                                       f.dir / "readonly.log", std::chrono::seconds(20)),
+                    Catch::Contains(db_path.string()) && Catch::Contains("not writable"));
+  CHECK(ReadOnly(db_path).CountProbes(1).captured == before);
+
+  // Writable again: the run resumes where it stopped and every probe is captured once.
+  fs::permissions(db_path, fs::perms::owner_write, fs::perm_options::add);
+  auto daemon = std::make_unique<cli::DaemonProcess>(unprivileged, f.dir / "gs360d.toml",
+                                                     f.dir / "data", f.dir / "gs360d.log");
+  cli::DaemonClient client(daemon->url(), "");
+  client.Post("/api/v1/runs/1/resume");
+  const Json done = WaitFor(client, 1, [](const Json& r) { return r["state"] == "done"; });
+  CHECK(done["probes_done"].get<int>() > before);
+  CHECK(daemon->Stop() == 0);
+  RunDatabase db = ReadOnly(db_path);
+  const auto captured = db.ListCapturedProbes(1);
+  CHECK(static_cast<std::int64_t>(captured.size()) == db.CountProbes(1).captured);
+  CHECK(db.ListFrames(1, FrameKind::kPress).size() == captured.size());
+  CHECK(db.CountProbes(1).planned == 0);
 }
 
 TEST_CASE("gs360d tells systemd it is ready, pings the watchdog and reports the run's progress",
