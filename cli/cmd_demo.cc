@@ -101,7 +101,7 @@ Json ResumeUntilDone(DaemonClient& client, std::int64_t id, Json run) {
   return run;
 }
 
-int RunDemo(const DemoOptions& o) {
+int RunDemo(const DemoOptions& o, RunConfig config) {
   const auto t0 = std::chrono::steady_clock::now();
   const std::filesystem::path dir = std::filesystem::absolute(
       o.data_dir.empty()
@@ -112,7 +112,6 @@ int RunDemo(const DemoOptions& o) {
               o.sim.config.empty() ? o.shape.c_str() : o.sim.config.c_str(), o.probes,
               o.time_scale > 0.0 ? (FormatFixed(o.time_scale, 1) + "x real time").c_str()
                                  : "instant motion");
-  RunConfig config = BaseRunConfig(o.sim);
   if (o.sim.config.empty()) config.rig.shape.shape = ParseSensorShape(o.shape);
   // With faults the CNC may come back under a new pty (unplug): the daemon finds it by symlink.
   VirtualSetup setup =
@@ -218,7 +217,10 @@ void RegisterDemoCommand(CLI::App& app, CommandContext& ctx) {
   demo->add_flag("--no-calibrate", o.no_calibrate, "Stop after the acquisition");
   AddSimArgs(demo, &o.sim);
   shape->excludes("--config");
-  demo->callback([&ctx] { ctx.exit_code = RunDemo(o); });
+  demo->callback([&ctx, demo] {
+    RunConfig config = LoadSimConfig(*demo, &o.sim, &o.seed);
+    ctx.exit_code = RunDemo(o, std::move(config));
+  });
 }
 
 }  // namespace gs360::cli

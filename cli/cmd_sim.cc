@@ -64,8 +64,8 @@ void RegisterSimCommands(CLI::App& app, CommandContext& ctx) {
       ->capture_default_str();
   AddSimArgs(rig, &o.sim);
   shape->excludes("--config");
-  rig->callback([] {
-    RigConfig config = BaseRunConfig(o.sim).rig;
+  rig->callback([rig] {
+    RigConfig config = LoadSimConfig(*rig, &o.sim, &o.seed).rig;
     if (o.sim.config.empty()) config.shape.shape = ParseSensorShape(o.shape);
     VirtualRigOptions options;
     options.rig = SimRigOptionsFor(config, o.seed);

@@ -4,54 +4,80 @@
 #include <stdexcept>
 
 #include "base/format.h"
+#include "base/json_reader.h"
 #include "daemon/daemon_config.h"
 
 namespace gs360::cli {
 
+namespace {
+
+// Each knob's bounds, shared by its command-line option and its key in the file's [sim].
+struct Bounds {
+  double lo;
+  double hi;
+};
+constexpr Bounds kPerturbation{0.0, 15.0};
+constexpr Bounds kReadNoise{0.0, 50.0};
+constexpr Bounds kShotGain{0.0, 10.0};
+constexpr Bounds kDrift{0.0, 0.5};
+constexpr Bounds kTilt{0.0, 30.0};
+constexpr Bounds kOffset{0.0, 5.0};
+constexpr Bounds kFraction{0.0, 1.0};
+constexpr Bounds kIntensity{0.0, 1000.0};
+constexpr Bounds kBlueLeds{1.0, 64.0};
+constexpr Bounds kFaultEvery{2.0, 100000.0};
+
+CLI::Range RangeOf(Bounds b) {
+  return CLI::Range(b.lo, b.hi);
+}
+
+}  // namespace
+
 void AddSimArgs(CLI::App* cmd, SimArgs* args) {
   cmd->add_option("--config", args->config,
                   "A gs360d.toml whose [rig] (shape or mesh, fins, lens, camera height) and [plan] "
-                  "describe the virtual rig; its [machine] and [camera] are the virtual rig's")
+                  "describe the virtual rig, and whose [sim] sets the options below (the command "
+                  "line wins); its [machine] and [camera] are the virtual rig's")
       ->check(CLI::ExistingFile);
   cmd->add_option("--perturbation", args->perturbation,
                   "How far the hidden true camera lies from the nominal one, as a multiple of the "
                   "default offsets (0.3 mm, 1 deg, 1% focal length, 3 px, k1/k2); 0: exact")
-      ->check(CLI::Range(0.0, 15.0))
+      ->check(RangeOf(kPerturbation))
       ->capture_default_str();
   cmd->add_flag("--no-noise", args->no_noise, "Noise-free camera frames");
   cmd->add_option("--read-noise", args->read_noise, "Camera read noise, DN (default 1.0)")
-      ->check(CLI::Range(0.0, 50.0));
+      ->check(RangeOf(kReadNoise));
   cmd->add_option("--shot-gain", args->shot_gain,
                   "Camera shot noise: DN per electron (default 0.05)")
-      ->check(CLI::Range(0.0, 10.0));
+      ->check(RangeOf(kShotGain));
   cmd->add_option("--led-drift", args->drift,
                   "LED drift amplitude, relative gain over hours (default 0.015)")
-      ->check(CLI::Range(0.0, 0.5));
+      ->check(RangeOf(kDrift));
   cmd->add_option("--camera-tilt", args->camera_tilt_deg,
                   "The hidden true camera's tilt off the nominal one, deg (random axis; default "
                   "1 x --perturbation)")
-      ->check(CLI::Range(0.0, 30.0));
+      ->check(RangeOf(kTilt));
   cmd->add_option("--camera-offset", args->camera_offset_mm,
                   "The hidden true camera centre's distance from the nominal one, mm (random "
                   "direction; default 0.3 x --perturbation)")
-      ->check(CLI::Range(0.0, 5.0));
+      ->check(RangeOf(kOffset));
   cmd->add_option("--led-heights", args->led_heights,
                   "Fin LED heights as fractions of the sensor height (default 0.12,0.32)")
       ->delimiter(',')
-      ->check(CLI::Range(0.0, 1.0));
+      ->check(RangeOf(kFraction));
   cmd->add_option("--led-radial", args->led_radial,
                   "Fin LEDs' place across the fin, fraction of its half-width (default 0.55)")
-      ->check(CLI::Range(0.0, 1.0));
+      ->check(RangeOf(kFraction));
   cmd->add_option("--led-intensity", args->led_intensity,
                   "Red, green and blue LED intensities (default 1,1,10)")
       ->delimiter(',')
       ->expected(3)
-      ->check(CLI::Range(0.0, 1000.0));
+      ->check(RangeOf(kIntensity));
   cmd->add_option("--blue-leds", args->blue_leds, "LEDs on the blue ring (default 12)")
-      ->check(CLI::Range(1, 64));
+      ->check(RangeOf(kBlueLeds));
   cmd->add_option("--blue-ring-radius", args->blue_ring_radius,
                   "The blue ring's radius, fraction of the base radius (default 0.35)")
-      ->check(CLI::Range(0.0, 1.0));
+      ->check(RangeOf(kFraction));
   AddFaultArgs(cmd, &args->faults, &args->fault_every);
 }
 
@@ -71,7 +97,7 @@ void AddFaultArgs(CLI::App* cmd, std::string* faults, double* every) {
           },
           "KIND,..."));
   cmd->add_option("--fault-every", *every, "Mean presses between faults (uniform 0.5-1.5x)")
-      ->check(CLI::Range(2.0, 100000.0))
+      ->check(RangeOf(kFaultEvery))
       ->capture_default_str();
 }
 
@@ -117,9 +143,98 @@ void ApplyLedArgs(const SimArgs& args, LightingOptions* lighting) {
 
 }  // namespace
 
-RunConfig BaseRunConfig(const SimArgs& args) {
-  if (args.config.empty()) return RunConfig{};
-  return LoadDaemonConfig(args.config).run;
+namespace {
+
+// The [sim] table of a gs360d.toml, read into a SimArgs for every knob the command line left
+// alone (the command line wins). Each value is checked against its option's bounds, and an error
+// names the file, the line and the key.
+class SimSectionReader {
+ public:
+  SimSectionReader(JsonReader& r, const CLI::App& cmd) : r_(r), cmd_(cmd) {}
+
+  void Number(const char* key, const char* flag, Bounds b, double& out) {
+    double v = out;
+    r_.Get(key, v);
+    Check(key, v, b);
+    if (!Given(flag)) out = v;
+  }
+  template <typename T>
+  void Number(const char* key, const char* flag, Bounds b, std::optional<T>& out) {
+    if (r_.Raw(key) == nullptr) return;
+    T v{};
+    r_.Get(key, v);
+    Check(key, static_cast<double>(v), b);
+    if (!Given(flag)) out = v;
+  }
+  void List(const char* key, const char* flag, Bounds b, std::size_t size,
+            std::vector<double>& out) {
+    std::vector<double> v;
+    r_.Get(key, v);
+    if (v.empty()) return;
+    if (size != 0 && v.size() != size) {
+      r_.Fail(key, "takes " + std::to_string(size) + " values, got " + std::to_string(v.size()));
+    }
+    for (double x : v) Check(key, x, b);
+    if (!Given(flag)) out = v;
+  }
+  void Faults(std::string& out) {
+    if (r_.Raw("faults") == nullptr) return;
+    std::string v;
+    r_.Get("faults", v);
+    try {
+      ParseRigFaults(v);
+    } catch (const std::invalid_argument& e) {
+      r_.Fail("faults", e.what());
+    }
+    if (!Given("--faults")) out = v;
+  }
+  void Noise(bool& no_noise) {
+    bool noise = !no_noise;
+    r_.Get("noise", noise);
+    if (!Given("--no-noise")) no_noise = !noise;
+  }
+  void Seed(std::uint64_t& out) {
+    std::uint64_t v = out;
+    r_.Get("seed", v);
+    if (!Given("--seed")) out = v;
+  }
+
+ private:
+  bool Given(const char* flag) const { return cmd_.count(flag) > 0; }
+  void Check(const char* key, double v, Bounds b) const {
+    if (!(v >= b.lo && v <= b.hi)) {
+      r_.Fail(key, "must be in " + FormatFixed(b.lo, 3) + ".." + FormatFixed(b.hi, 3) + ", got " +
+                       FormatFixed(v, 3));
+    }
+  }
+
+  JsonReader& r_;
+  const CLI::App& cmd_;
+};
+
+}  // namespace
+
+RunConfig LoadSimConfig(const CLI::App& cmd, SimArgs* args, std::uint64_t* seed) {
+  if (args->config.empty()) return RunConfig{};
+  const auto read_sim = [&](JsonReader& r) {
+    SimSectionReader s(r, cmd);
+    s.Seed(*seed);
+    s.Number("perturbation", "--perturbation", kPerturbation, args->perturbation);
+    s.Noise(args->no_noise);
+    s.Number("read_noise", "--read-noise", kReadNoise, args->read_noise);
+    s.Number("shot_gain", "--shot-gain", kShotGain, args->shot_gain);
+    s.Number("led_drift", "--led-drift", kDrift, args->drift);
+    s.Number("camera_tilt", "--camera-tilt", kTilt, args->camera_tilt_deg);
+    s.Number("camera_offset", "--camera-offset", kOffset, args->camera_offset_mm);
+    s.List("led_heights", "--led-heights", kFraction, 0, args->led_heights);
+    s.Number("led_radial", "--led-radial", kFraction, args->led_radial);
+    s.List("led_intensity", "--led-intensity", kIntensity, 3, args->led_intensity);
+    s.Number("blue_leds", "--blue-leds", kBlueLeds, args->blue_leds);
+    s.Number("blue_ring_radius", "--blue-ring-radius", kFraction, args->blue_ring_radius);
+    s.Faults(args->faults);
+    s.Number("fault_every", "--fault-every", kFaultEvery, args->fault_every);
+  };
+  return LoadDaemonConfig(args->config, read_sim).run;
 }
 
 void ApplySimArgs(const SimArgs& args, VirtualRigOptions* options) {

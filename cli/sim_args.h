@@ -59,9 +59,10 @@ std::unique_ptr<RigFaultSchedule> StartFaults(const SimArgs& args, VirtualRig& r
 std::string DescribeFaults(const std::map<std::string, int>& injected);
 
 // The run configuration the virtual rig is built from: the file's (its [machine] and [camera]
-// are replaced by the virtual rig's), else the defaults. Throws ConfigError naming the file, the
-// line and the field.
-RunConfig BaseRunConfig(const SimArgs& args);
+// are replaced by the virtual rig's), else the defaults. The file's [sim] table sets every knob of
+// `args` (and `seed`) that `cmd`'s command line did not give (docs/virtual_rig.md). Call it once,
+// after parsing. Throws ConfigError naming the file, the line and the field.
+RunConfig LoadSimConfig(const CLI::App& cmd, SimArgs* args, std::uint64_t* seed);
 
 // Applies the perturbation scale and the noise settings to the rig's options (as the `tweak` of
 // MakeVirtualSetup). Throws std::invalid_argument naming the option when the result is invalid

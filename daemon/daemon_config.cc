@@ -88,7 +88,7 @@ void PushToml(toml::array& a, const nlohmann::json& v) {
   }
 }
 
-void ReadDaemon(JsonReader& r, DaemonConfig& c) {
+void ReadDaemon(JsonReader& r, DaemonConfig& c, const std::function<void(JsonReader&)>& read_sim) {
   std::string data_dir = c.data_dir.string();
   r.Get("data_dir", data_dir);
   c.data_dir = data_dir;
@@ -116,6 +116,11 @@ void ReadDaemon(JsonReader& r, DaemonConfig& c) {
     o.Get("threads", c.calibration.threads);
   });
   ReadRunConfig(r, c.run);
+  if (read_sim) {
+    r.Object("sim", read_sim);
+  } else {
+    r.Raw("sim");  // the virtual rig's, not gs360d's
+  }
 }
 
 }  // namespace
@@ -182,7 +187,8 @@ void DaemonConfig::Check() const {
 }
 
 DaemonConfig DaemonConfigFromToml(std::string_view text, const std::string& where,
-                                  const std::filesystem::path& base_dir) {
+                                  const std::filesystem::path& base_dir,
+                                  const std::function<void(JsonReader&)>& read_sim) {
   toml::table table;
   try {
     table = toml::parse(text, where);
@@ -195,7 +201,7 @@ DaemonConfig DaemonConfigFromToml(std::string_view text, const std::string& wher
   const nlohmann::json json = ToJson(table, "", lines, where);
   DaemonConfig c;
   JsonReader r(json, where, "", &lines);
-  ReadDaemon(r, c);
+  ReadDaemon(r, c, read_sim);
   r.RejectUnknown();
   c.data_dir = Resolve(base_dir, c.data_dir.string());
   c.run.rig.mesh_path = Resolve(base_dir, c.run.rig.mesh_path).string();
@@ -210,12 +216,13 @@ DaemonConfig DaemonConfigFromToml(std::string_view text, const std::string& wher
   return c;
 }
 
-DaemonConfig LoadDaemonConfig(const std::filesystem::path& path) {
+DaemonConfig LoadDaemonConfig(const std::filesystem::path& path,
+                              const std::function<void(JsonReader&)>& read_sim) {
   std::ifstream in(path, std::ios::binary);
   if (!in) throw ConfigError(path.string() + ": cannot open the configuration file");
   std::stringstream ss;
   ss << in.rdbuf();
-  return DaemonConfigFromToml(ss.str(), path.string(), path.parent_path());
+  return DaemonConfigFromToml(ss.str(), path.string(), path.parent_path(), read_sim);
 }
 
 std::string DaemonConfigToToml(const DaemonConfig& c) {

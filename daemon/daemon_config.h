@@ -10,6 +10,7 @@
 #include <Eigen/Core>
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <string>
 #include <string_view>
 
@@ -63,9 +64,14 @@ struct DaemonConfig {
 
 // Parses TOML text. `where` names the source in messages (the file's path). Relative paths in
 // the file (data_dir, rig.mesh_path, calibration.checkerboards) are taken relative to `base_dir`.
+// The file's [sim] table holds the virtual rig's knobs (noise, LEDs, faults; docs/virtual_rig.md).
+// gs360d does not read it; `gs360 sim-rig` and `gs360 demo` pass `read_sim`, which reads it with
+// the same checks (unknown keys, types, the file's line in every error).
 DaemonConfig DaemonConfigFromToml(std::string_view text, const std::string& where,
-                                  const std::filesystem::path& base_dir = {});
-DaemonConfig LoadDaemonConfig(const std::filesystem::path& path);
+                                  const std::filesystem::path& base_dir = {},
+                                  const std::function<void(JsonReader&)>& read_sim = {});
+DaemonConfig LoadDaemonConfig(const std::filesystem::path& path,
+                              const std::function<void(JsonReader&)>& read_sim = {});
 // The configuration as TOML (every key, with its value): `gs360d --print-config`.
 std::string DaemonConfigToToml(const DaemonConfig& config);
 

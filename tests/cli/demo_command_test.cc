@@ -11,6 +11,7 @@
 
 #include "cli/sim_args.h"
 #include "daemon/calibration_inputs.h"
+#include "daemon/daemon_config.h"
 #include "sim/tactile_camera.h"
 #include "storage/run_database.h"
 #include "tests/cli/run_gs360.h"
@@ -39,13 +40,16 @@ TEST_CASE("demo runs a held-out rig from a gs360d.toml through the daemon", "[cl
   std::ofstream(config) << "# a slimmer spline finger, the camera lower, thinner fins\n"
                            "[rig.shape]\ntype = \"spline\"\n[rig.shape.spline]\n"
                            "control_points = [[0, 9], [8, 8.5], [16, 8], [22, 7.5], [26, 5], "
-                           "[29, 0]]\n[rig.fins]\nthickness = 0.4\n[rig.camera]\ncamera_z = -2.0\n";
+                           "[29, 0]]\n[rig.fins]\nthickness = 0.4\n[rig.camera]\ncamera_z = -2.0\n"
+                           "[sim]\nperturbation = 2\nread_noise = 2\nfaults = \"frame-drop\"\n"
+                           "fault_every = 10\n";
   const fs::path data = dir.path / "data";
   const auto r = Gs360("demo --config " + config.string() + " --probes 80 --no-calibrate " +
-                       "--perturbation 2 --read-noise 2 --data-dir " + data.string());
+                       "--data-dir " + data.string());
   INFO(r.out);
   REQUIRE(r.status == 0);
   CHECK_THAT(r.out, Contains("(spline)"));
+  CHECK_THAT(r.out, Contains("faults: frame-drop, one every ~10 presses"));
   CHECK_THAT(r.out, Contains("0 taken off the press point, 0 unverifiable"));
 
   RunDatabaseOptions ro;
@@ -71,6 +75,58 @@ TEST_CASE("demo names the file, line and key of a bad rig description", "[cli][d
   r = Gs360("demo --config " + config.string() + " --shape cone");
   CHECK(r.status != 0);
   CHECK_THAT(r.out, Contains("--shape excludes --config"));
+}
+
+TEST_CASE("a gs360d.toml's [sim] sets the virtual rig's knobs and the command line wins",
+          "[cli][demo]") {
+  TempDir dir;
+  const fs::path path = dir.path / "rig.toml";
+  const auto load = [&](const std::string& sim, const std::string& command_line) {
+    std::ofstream(path) << "[rig.camera]\ncamera_z = -2.0\n[sim]\n" << sim;
+    CLI::App app;
+    std::uint64_t seed = 1;
+    app.add_option("--seed", seed);
+    cli::SimArgs args;
+    cli::AddSimArgs(&app, &args);
+    app.parse("--config " + path.string() + " " + command_line, false);
+    const RunConfig config = cli::LoadSimConfig(app, &args, &seed);
+    CHECK(config.rig.camera_z == -2.0);
+    return std::make_pair(args, seed);
+  };
+  const auto [args, seed] = load(
+      "seed = 7\nperturbation = 0.5\nnoise = false\nread_noise = 2\nshot_gain = 0.2\n"
+      "led_drift = 0.03\ncamera_tilt = 2\ncamera_offset = 0.4\nled_heights = [0.2, 0.6]\n"
+      "led_radial = 0.3\nled_intensity = [2, 1, 5]\nblue_leds = 8\nblue_ring_radius = 0.4\n"
+      "faults = \"drop,stall\"\nfault_every = 20\n",
+      "--read-noise 3 --fault-every 30");
+  CHECK(seed == 7);
+  CHECK(args.perturbation == 0.5);
+  CHECK(args.no_noise);
+  CHECK(args.read_noise == 3.0);  // the command line's
+  CHECK(args.shot_gain == 0.2);
+  CHECK(args.drift == 0.03);
+  CHECK(args.camera_tilt_deg == 2.0);
+  CHECK(args.camera_offset_mm == 0.4);
+  CHECK(args.led_heights == std::vector<double>{0.2, 0.6});
+  CHECK(args.led_radial == 0.3);
+  CHECK(args.led_intensity == std::vector<double>{2.0, 1.0, 5.0});
+  CHECK(args.blue_leds == 8);
+  CHECK(args.blue_ring_radius == 0.4);
+  CHECK(args.faults == "drop,stall");
+  CHECK(args.fault_every == 30.0);  // the command line's
+
+  // Wrong values name the file, the line and the key; gs360d itself leaves [sim] alone.
+  const std::string where = path.string() + ":";
+  CHECK_THROWS_WITH(load("read_noise = 1\nred_noise = 2\n", ""),
+                    Contains(where + "5: sim.red_noise: unknown key"));
+  CHECK_THROWS_WITH(load("led_radial = 2\n", ""),
+                    Contains(where + "4: sim.led_radial") && Contains("must be in 0.000..1.000"));
+  CHECK_THROWS_WITH(load("led_intensity = [1, 2]\n", ""), Contains("takes 3 values, got 2"));
+  CHECK_THROWS_WITH(load("faults = \"drop,boom\"\n", ""),
+                    Contains("sim.faults") && Contains("boom"));
+  CHECK_THROWS_WITH(load("seed = \"x\"\n", ""), Contains("sim.seed"));
+  std::ofstream(path) << "[sim]\nred_noise = 2\n";
+  CHECK_NOTHROW(LoadDaemonConfig(path));
 }
 
 TEST_CASE("the virtual rig's knobs scale its hidden truth and noise, and refuse a folded lens",
