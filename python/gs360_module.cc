@@ -8,7 +8,9 @@
 // contacts: a list of dicts (recon/contacts.h). The frame is read in place when it is a
 // C-contiguous uint8 array (no copy); depth and points are handed over without a copy.
 // Errors: ValueError for a frame of the wrong shape or type, RuntimeError for an unreadable
-// model (the message names the file and the problem).
+// model (the message names the file and the problem). A frame that cannot be reconstructed (it
+// differs from the reference over more of the image than a contact could: saturated, black,
+// corrupt, the lighting changed) gives no depth and a RuntimeWarning saying why.
 
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
@@ -96,6 +98,13 @@ class Model {
       py::gil_scoped_release release;  // frames in flight on several Python threads
       r = recon_->Reconstruct(image, ref);
     }
+    if (!r.problem.empty()) {
+      // Not an error: the next frame may be fine. Raised when warnings are made errors.
+      const std::string message = "gs360: frame not reconstructed: " + r.problem;
+      if (PyErr_WarnEx(PyExc_RuntimeWarning, message.c_str(), 1) != 0) {
+        throw py::error_already_set();
+      }
+    }
     const std::vector<ContactSummary> contacts = SummarizeContacts(*recon_, r, min_indentation_mm);
     const std::vector<Eigen::Vector3f> points = recon_->PointCloud(r, min_indentation_mm);
     cv::Mat cloud(static_cast<int>(points.size()), 3, CV_32F);
@@ -134,7 +143,9 @@ PYBIND11_MODULE(gs360, m) {
       .def("reconstruct", &Model::Reconstruct, py::arg("frame"), py::arg("reference") = py::none(),
            py::arg("min_indentation_mm") = 0.02,
            "frame (H x W x 3 uint8 BGR) -> (depth H x W float32 mm, points N x 3 float32 mm in "
-           "the sensor frame, contacts: list of dicts)")
+           "the sensor frame, contacts: list of dicts); a frame that cannot be reconstructed "
+           "(saturated, black, corrupt, the lighting changed) gives no depth and a "
+           "RuntimeWarning saying why")
       .def_property_readonly("name", &Model::name)
       .def_property_readonly("size", &Model::size, "(width, height) of the camera")
       .def_property_readonly("reference", &Model::reference,

@@ -475,6 +475,29 @@ RegionReconstruction Reconstructor::ReconstructRegion(const cv::Mat& diff,
   return out;
 }
 
+namespace {
+
+// LED drift moves a channel's gain by a few percent over hours. A frame at half or twice the
+// reference's brightness is not a tactile frame against it (a black or saturated frame, the LEDs
+// off, the exposure changed), and dividing by its gain would make it look like no contact.
+std::string GainProblem(const cv::Vec3d& gain) {
+  constexpr double kMinGain = 0.5;
+  constexpr double kMaxGain = 2.0;
+  static const char* const kChannel[] = {"blue", "green", "red"};
+  for (int c = 0; c < 3; ++c) {
+    if (gain[c] >= kMinGain && gain[c] <= kMaxGain) continue;
+    const std::string what = "the frame's " + std::string(kChannel[c]) + " brightness ";
+    return (std::isfinite(gain[c]) ? what + "is " + std::to_string(std::lround(100.0 * gain[c])) +
+                                         " % of the reference's (outside 50-200 %)"
+                                   : what + "cannot be compared with the reference's") +
+           ": a black or saturated frame, the LEDs off or the exposure changed (recapture the "
+           "reference)";
+  }
+  return "";
+}
+
+}  // namespace
+
 FrameReconstruction Reconstructor::Reconstruct(const cv::Mat& frame) const {
   return Reconstruct(frame, reference_);
 }
@@ -485,6 +508,11 @@ FrameReconstruction Reconstructor::Reconstruct(const cv::Mat& frame,
   FrameReconstruction out;
   const DetectedContacts detected = Detect(frame, reference);
   out.gain = detected.gain;
+  out.problem = GainProblem(out.gain);
+  if (!out.problem.empty()) {
+    out.seconds = Seconds(t0);
+    return out;
+  }
   // Contacts change a small part of the image (a dense press, about 3 %): a frame changed over
   // much of it is no tactile frame against this reference, and its "regions" would be
   // reconstructed into a phantom the size of the finger.

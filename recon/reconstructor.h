@@ -90,8 +90,9 @@ struct FrameReconstruction {
   std::vector<RegionReconstruction> regions;  // empty = no contact
   cv::Vec3d gain{1.0, 1.0, 1.0};              // LED drift gain found against the reference
   // Empty for a usable frame. Otherwise why the frame was not reconstructed (regions is then
-  // empty): it differs from the reference over more of the image than any contact could (a
-  // saturated, black or corrupt frame, the lighting changed, the camera moved).
+  // empty): its brightness in a channel is outside half to twice the reference's (a black or
+  // saturated frame, the LEDs off), or it differs from the reference over more of the image
+  // than any contact could (a corrupt frame, the lighting changed, the camera moved).
   std::string problem;
   double changed_fraction = 0.0;  // of the visible pixels, the share the detection marks changed
   double seconds = 0.0;

@@ -57,11 +57,14 @@ Summary Summarize(const Reconstructor& r, const FrameReconstruction& f) {
 }
 
 // A frame that is not a tactile image at all must give no contact: the reconstruction refuses it
-// (an error naming the problem) or reports nothing.
-StressCase Unusable(const std::string& what, std::function<cv::Mat(const cv::Mat&, int)> make) {
+// (an error naming the problem) or reports nothing. A frame no camera on a working sensor gives
+// (black, saturated) must be refused: "no contact" from a dead camera would mislead a robot.
+StressCase Unusable(const std::string& what, std::function<cv::Mat(const cv::Mat&, int)> make,
+                    bool must_refuse) {
   return {"frames", what + " frame against the model's reference",
-          "refused with the reason, or no contact reported; never a non-finite depth",
-          [make](const StressContext& c, std::string* observed) {
+          must_refuse ? "refused with the reason (not \"no contact\")"
+                      : "refused with the reason, or no contact reported; never a non-finite depth",
+          [make, must_refuse](const StressContext& c, std::string* observed) {
             const ModelBundle& m = Model(c);
             const Reconstructor r = m.MakeReconstructor(1);
             const cv::Mat frame = make(m.reference, static_cast<int>(c.seed));
@@ -69,6 +72,7 @@ StressCase Unusable(const std::string& what, std::function<cv::Mat(const cv::Mat
               const FrameReconstruction f = r.Reconstruct(frame);
               const Summary s = Summarize(r, f);
               *observed = f.problem.empty() ? s.Text() : "refused: " + f.problem;
+              if (must_refuse && f.problem.empty()) return false;
               return s.contacts == 0 && s.nonfinite == 0;
             } catch (const std::invalid_argument& e) {
               *observed = std::string("std::invalid_argument: ") + e.what();
@@ -175,9 +179,9 @@ StressCase NoImpression(const std::string& what, std::function<cv::Mat(const cv:
 std::vector<StressCase> FrameCases() {
   const auto saturated = [](const cv::Mat& ref, int) { return Constant(ref, 255); };
   const auto black = [](const cv::Mat& ref, int) { return Constant(ref, 0); };
-  return {Unusable("a saturated (all 255)", saturated),
-          Unusable("a black (all 0)", black),
-          Unusable("a uniform noise", UniformNoise),
+  return {Unusable("a saturated (all 255)", saturated, true),
+          Unusable("a black (all 0)", black, true),
+          Unusable("a uniform noise", UniformNoise, false),
           Noise(3.0, true),
           Noise(4.0, false),
           Noise(6.0, false),

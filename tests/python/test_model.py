@@ -5,6 +5,7 @@
 import os
 import sys
 import threading
+import warnings
 
 import numpy as np
 
@@ -42,6 +43,19 @@ def main():
 
     d0, p0, c0 = model.reconstruct(empty)
     check(len(c0) == 0 and p0.shape == (0, 3) and float(d0.max()) == 0.0, 'no contact, no depth')
+
+    # A black frame (the LEDs off, a cable loose) is no contact at all, and says why.
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter('always')
+        db, pb, cb = model.reconstruct(np.zeros_like(frame))
+    check(len(cb) == 0 and pb.shape == (0, 3) and float(db.max()) == 0.0, 'a black frame: no depth')
+    check(len(caught) == 1 and issubclass(caught[0].category, RuntimeWarning) and
+          'frame not reconstructed' in str(caught[0].message),
+          f'a black frame warns: {[str(w.message) for w in caught]}')
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter('always')
+        model.reconstruct(frame)
+    check(len(caught) == 0, 'a good frame does not warn')
 
     # An explicit reference; and the frame read in place from a non-copied view.
     d1, _, _ = model.reconstruct(frame, reference=model.reference)
