@@ -848,6 +848,7 @@ Json Calibration::ValidateProbes() {
     probe_errors.push_back({point.x(), point.y(), point.z(), error});
   }
   v.report["probe_errors"] = probe_errors;
+  v.report["coverage_gaps"] = inputs_.coverage_gaps;
   // Captured probes the dataset left out, by reason (the dataset stage's rule).
   int unseen = 0, small = 0;
   for (const ProbeInfo& p : probes_) {
@@ -877,6 +878,7 @@ Json Calibration::ValidateProbes() {
   ri.examples = v.examples;
   ri.probe_errors = v.probe_errors;
   ri.gel_height_mm = height;
+  ri.coverage_gaps = inputs_.coverage_gaps;
   return Json{{"validation", v.report}, {"html", RenderReportHtml(ri)}};
 }
 

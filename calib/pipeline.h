@@ -49,6 +49,9 @@ struct CalibrationInputs {
   // Checkerboard images for the intrinsics stage (grey or colour, the camera's size). Empty: the
   // nominal intrinsics are used, and the report says so.
   std::vector<std::filesystem::path> checkerboard_images;
+  // Where the plan left the surface unprobed (plan/coverage.h's CoverageGap::ToJson() array),
+  // drawn on the report's error map and kept in validation.json. Not a stage input.
+  nlohmann::json coverage_gaps = nlohmann::json::array();
 };
 
 struct StageReport {

@@ -465,8 +465,42 @@ std::string CurveSvg(const std::vector<TrainEpoch>& curve) {
   return s.str();
 }
 
+// Fields of a gap object, with a fallback for anything missing or mistyped (the report never
+// throws).
+double GapNumber(const Json& g, const char* key) {
+  const Json* v = g.is_object() && g.contains(key) ? &g[key] : nullptr;
+  return v != nullptr && v->is_number() ? v->get<double>() : 0.0;
+}
+std::string GapText(const Json& g) {
+  return g.is_object() && g.contains("text") && g["text"].is_string() ? g["text"].get<std::string>()
+                                                                      : std::string("?");
+}
+
+// The plan's unprobed parts as hatched rectangles (`px`, `py` map azimuth and height to the
+// map), each with its text as a tooltip; a range across +-180 deg is drawn as two.
+template <typename Px, typename Py>
+std::string CoverageGapRects(const Json& gaps, Px px, Py py) {
+  std::ostringstream s;
+  if (!gaps.is_array()) return {};
+  for (const Json& g : gaps) {
+    if (!g.is_object()) continue;
+    const double z0 = GapNumber(g, "z_min_mm"), z1 = GapNumber(g, "z_max_mm");
+    double a0 = GapNumber(g, "azimuth_min_deg"), a1 = GapNumber(g, "azimuth_max_deg");
+    if (g.is_object() && g.contains("all_around") && g["all_around"] == true) a0 = -180, a1 = 180;
+    std::vector<std::pair<double, double>> spans = {{a0, a1}};
+    if (a1 < a0) spans = {{a0, 180.0}, {-180.0, a1}};
+    for (const auto& [lo, hi] : spans) {
+      s << "<rect x=\"" << px(lo) << "\" y=\"" << py(z1) << "\" width=\"" << px(hi) - px(lo)
+        << "\" height=\"" << py(z0) - py(z1)
+        << "\" fill=\"url(#unprobed)\" stroke=\"#b33\" stroke-width=\"0.5\"><title>not probed: "
+        << Escape(GapText(g)) << "</title></rect>\n";
+    }
+  }
+  return s.str();
+}
+
 std::string ErrorMapSvg(const std::vector<std::pair<Eigen::Vector3d, double>>& probes,
-                        double gel_height_mm, double clamp_mm) {
+                        double gel_height_mm, double clamp_mm, const Json& gaps) {
   if (probes.empty()) return {};
   if (!(gel_height_mm > 0.0) || !std::isfinite(gel_height_mm)) gel_height_mm = 1.0;
   if (!(clamp_mm > 0.0) || !std::isfinite(clamp_mm)) clamp_mm = 0.1;
@@ -480,8 +514,12 @@ std::string ErrorMapSvg(const std::vector<std::pair<Eigen::Vector3d, double>>& p
     << "\" role=\"img\" font-size=\"11\">\n<defs><linearGradient id=\"errmap\">";
   for (int i = 0; i <= 4; ++i)
     s << "<stop offset=\"" << i * 25 << "%\" stop-color=\"" << Hex(Viridis(i / 4.0)) << "\"/>";
-  s << "</linearGradient></defs>\n<rect x=\"" << kL << "\" y=\"" << kT << "\" width=\""
-    << kW - kL - kR << "\" height=\"" << kH - kT - kB << "\" fill=\"#f4f4f4\" stroke=\"#888\"/>\n";
+  s << "</linearGradient><pattern id=\"unprobed\" patternUnits=\"userSpaceOnUse\" width=\"6\" "
+    << "height=\"6\" patternTransform=\"rotate(45)\"><line x1=\"0\" y1=\"0\" x2=\"0\" y2=\"6\" "
+    << "stroke=\"#c44\" stroke-width=\"2\"/></pattern></defs>\n<rect x=\"" << kL << "\" y=\"" << kT
+    << "\" width=\"" << kW - kL - kR << "\" height=\"" << kH - kT - kB
+    << "\" fill=\"#f4f4f4\" stroke=\"#888\"/>\n";
+  s << CoverageGapRects(gaps, px, py);
   for (int deg = -180; deg <= 180; deg += 90)
     s << "<text x=\"" << px(deg) << "\" y=\"" << kH - kB + 14 << "\" text-anchor=\"middle\">" << deg
       << "</text>\n";
@@ -511,8 +549,17 @@ std::string ErrorMapSvg(const std::vector<std::pair<Eigen::Vector3d, double>>& p
     << kL + 120 << "\" y=\"" << ly + 26 << "\" text-anchor=\"middle\">" << Fixed(clamp_mm / 2, 3)
     << "</text><text x=\"" << kL + 240 << "\" y=\"" << ly + 26 << "\" text-anchor=\"end\">&ge;"
     << Fixed(clamp_mm, 3) << "</text><text x=\"" << kL + 250 << "\" y=\"" << ly + 10
-    << "\">mean depth error per probe (mm); grey: no data</text>\n";
+    << "\">mean depth error per probe (mm); grey: no data"
+    << (gaps.is_array() && !gaps.empty() ? "; hatched: not probed (the plan's reason)" : "")
+    << "</text>\n";
   s << "</svg>\n";
+  if (gaps.is_array() && !gaps.empty()) {
+    s << "<p>Not probed, so the model has not learnt these parts:</p>\n<ul>\n";
+    for (const Json& g : gaps) {
+      if (g.is_object()) s << "<li>" << Escape(GapText(g)) << "</li>\n";
+    }
+    s << "</ul>\n";
+  }
   return s.str();
 }
 
@@ -721,7 +768,8 @@ std::string RenderReportHtml(const ReportInputs& inputs) {
   s << StageTable(inputs.stages);
   s << ValidationSection(inputs.validation);
   s << CurveSvg(inputs.curve);
-  s << ErrorMapSvg(inputs.probe_errors, inputs.gel_height_mm, inputs.error_map_clamp_mm);
+  s << ErrorMapSvg(inputs.probe_errors, inputs.gel_height_mm, inputs.error_map_clamp_mm,
+                   inputs.coverage_gaps);
   s << ExamplesSection(inputs.examples);
   s << "</body></html>\n";
   return s.str();

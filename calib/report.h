@@ -23,6 +23,10 @@ struct ReportInputs {
   // Per evaluated probe: contact point (sensor frame, mm) and its mean depth error (mm).
   std::vector<std::pair<Eigen::Vector3d, double>> probe_errors;
   double gel_height_mm = 30.0;
+  // Parts of the surface the plan left unprobed: objects with z_min_mm, z_max_mm,
+  // azimuth_min_deg, azimuth_max_deg (max < min: across +-180), all_around, text; hatched on the
+  // error map.
+  nlohmann::json coverage_gaps = nlohmann::json::array();
   // Top of the error map's colour scale (mm): larger errors get the top colour.
   double error_map_clamp_mm = 0.1;
 };

@@ -261,7 +261,7 @@ std::vector<std::string> Calibrate(const Config& c, Acquired& a) {
   options.export_dir = a.db.parent_path() / (c.Acquisition() + "-model");
   const SimValidationTruth truth(a.rig->rig(), a.rig->options().camera.gel);
   const CalibrationResult result = RunCalibration(
-      db, a.run_id, CalibrationInputsFor(a.config, a.checkerboards), options, &truth);
+      db, a.run_id, CalibrationInputsFor(db, a.run_id, a.checkerboards), options, &truth);
 
   Json& times = a.sidecar.data["stage_seconds"];
   if (!times.is_object()) times = Json::object();

@@ -111,7 +111,7 @@ void CalibrateLocally(const CalibrateArgs& a, CommandContext& ctx) {
   }();
   RunDatabase db(db_path);
   const RunConfig config = StoredRunConfig(db, a.run);
-  const CalibrationInputs inputs = CalibrationInputsFor(config, a.checkerboards);
+  const CalibrationInputs inputs = CalibrationInputsFor(db, a.run, a.checkerboards);
   CalibrationOptions options;
   JsonReader reader(a.request, "options");
   ReadCalibrationRequest(reader, options);

@@ -69,15 +69,15 @@ void WriteDaemonConfig(const std::filesystem::path& path, const VirtualSetup& se
 // The validation again, here, against the simulator's physical truth (the daemon is stopped:
 // this process may then open its database). Every stage but validate is cached.
 void ValidateAgainstTruth(const std::filesystem::path& db_path, std::int64_t run_id,
-                          const VirtualRig& rig, const RunConfig& config, int max_epochs) {
+                          const VirtualRig& rig, int max_epochs) {
   RunDatabase db(db_path);
   CalibrationOptions options;
   if (max_epochs > 0) options.train.max_epochs = max_epochs;
   options.export_dir = db_path.parent_path() / "runs" / std::to_string(run_id) / "model";
   const SimValidationTruth truth(rig.rig(), rig.options().camera.gel);
   const CalibrationResult result = RunCalibration(
-      db, run_id, CalibrationInputsFor(config, db_path.parent_path() / "checkerboards"), options,
-      &truth);
+      db, run_id, CalibrationInputsFor(db, run_id, db_path.parent_path() / "checkerboards"),
+      options, &truth);
   std::printf("\nvalidation against the virtual rig's physical truth (held-out probes):\n%s",
               FormatValidationTable(result.validation).c_str());
   std::printf("%s", FormatTargetsAndWarnings(result.validation).c_str());
@@ -181,7 +181,7 @@ int RunDemo(const DemoOptions& o, RunConfig config) {
   if (stopped != 0)
     std::printf("gs360d exited with %d (see %s/gs360d.log)\n", stopped, dir.c_str());
   if (acquired && calibrated && !o.no_calibrate) {
-    ValidateAgainstTruth(dir / "gs360.db", id, rig, config, o.max_epochs);
+    ValidateAgainstTruth(dir / "gs360.db", id, rig, o.max_epochs);
   }
   std::printf("demo finished in %s (acquisition %s); data in %s\n",
               FormatDuration(Since(t0)).c_str(), FormatDuration(acquisition_s).c_str(),

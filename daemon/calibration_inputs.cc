@@ -44,6 +44,20 @@ CalibrationInputs CalibrationInputsFor(const RunConfig& config,
   return in;
 }
 
+CalibrationInputs CalibrationInputsFor(const RunDatabase& db, std::int64_t run_id,
+                                       const std::filesystem::path& checkerboard_dir) {
+  CalibrationInputs in = CalibrationInputsFor(StoredRunConfig(db, run_id), checkerboard_dir);
+  for (const ArtifactRecord& a : db.ListArtifacts(run_id)) {
+    if (a.stage != kPlanArtifactStage) continue;
+    const nlohmann::json summary = nlohmann::json::parse(a.metrics_json, nullptr, false);
+    if (summary.is_object() && summary.contains("coverage_gaps") &&
+        summary["coverage_gaps"].is_array()) {
+      in.coverage_gaps = summary["coverage_gaps"];
+    }
+  }
+  return in;
+}
+
 RunConfig StoredRunConfig(const RunDatabase& db, std::int64_t run_id) {
   const auto run = db.GetRun(run_id);
   if (!run) {

@@ -17,6 +17,11 @@ namespace gs360 {
 CalibrationInputs CalibrationInputsFor(const RunConfig& config,
                                        const std::filesystem::path& checkerboard_dir = {});
 
+// The same for a stored run (its configuration, StoredRunConfig), with the coverage gaps of its
+// stored plan for the report's error map (none for a run planned before plans kept them).
+CalibrationInputs CalibrationInputsFor(const RunDatabase& db, std::int64_t run_id,
+                                       const std::filesystem::path& checkerboard_dir = {});
+
 // The run's stored configuration. Throws std::runtime_error naming the run and the database.
 RunConfig StoredRunConfig(const RunDatabase& db, std::int64_t run_id);
 

@@ -69,6 +69,7 @@ Json PlanSummary(const ProbePlan& plan) {
       {"candidates", plan.candidates},
       {"dropped", dropped},
       {"advice", PlanAdvice(plan.dropped, static_cast<int>(plan.probes.size()), plan.candidates)},
+      {"coverage_gaps", CoverageGapsJson(plan.coverage_gaps)},
       {"estimate_s", plan.estimate.Total()},
       {"tour_gain", plan.TourGain()}};
 }
@@ -261,7 +262,7 @@ ActionResult Daemon::Calibrate(std::int64_t run_id, const Json& request) {
     return Conflict("run has no captured probes to calibrate from", run->state);
   }
   const CalibrationInputs inputs =
-      CalibrationInputsFor(StoredRunConfig(db, run_id), config_.calibration.checkerboards);
+      CalibrationInputsFor(db, run_id, config_.calibration.checkerboards);
   std::int64_t busy = 0;
   if (!calibration_->Start(run_id, inputs, options, &busy)) {
     return Conflict("run " + std::to_string(busy) + " is being calibrated", run->state);

@@ -23,11 +23,7 @@
 #include "gcode/probe_program.h"
 
 namespace gs360 {
-namespace {
-
-constexpr const char* kPlanStage = "plan";
-
-}  // namespace
+namespace {}  // namespace
 
 using session::Clock;
 using session::Fmt3;
@@ -602,7 +598,7 @@ std::int64_t RunEngine::StoreRun(const RunConfig& config, const ProbePlan& plan)
   }
   db.InsertPlan(run_id, entries);
   const std::string blob = PlanToJson(plan, config.plan).dump();
-  db.PutArtifact(run_id, kPlanStage, plan.options_hash,
+  db.PutArtifact(run_id, kPlanArtifactStage, plan.options_hash,
                  std::span(reinterpret_cast<const std::uint8_t*>(blob.data()), blob.size()),
                  PlanSummaryJson(plan, config.plan).dump());
   db.AppendEvent(run_id, EventLevel::kInfo,
@@ -626,8 +622,8 @@ void RunEngine::SetSafetyLimits(const SafetyLimits& limits) {
 
 ProbePlan RunEngine::LoadPlan(const RunDatabase& db, std::int64_t run_id) {
   for (const ArtifactRecord& a : db.ListArtifacts(run_id)) {
-    if (a.stage != kPlanStage) continue;
-    const auto full = db.GetArtifact(run_id, kPlanStage, a.input_hash);
+    if (a.stage != kPlanArtifactStage) continue;
+    const auto full = db.GetArtifact(run_id, kPlanArtifactStage, a.input_hash);
     if (!full) break;
     const std::string text(full->blob.begin(), full->blob.end());
     return PlanFromJson(

@@ -69,24 +69,6 @@ std::vector<Eigen::Vector3d> SphereDirections(int n) {
 
 // --- Small types ---------------------------------------------------------------------------------
 
-std::string_view DropReasonName(DropReason reason) {
-  switch (reason) {
-    case DropReason::kFov:
-      return "fov";
-    case DropReason::kViewAngle:
-      return "view_angle";
-    case DropReason::kFin:
-      return "fin";
-    case DropReason::kGel:
-      return "gel";
-    case DropReason::kReach:
-      return "reach";
-    case DropReason::kTravel:
-      return "travel";
-  }
-  return "unknown";
-}
-
 std::vector<std::string> PlanAdvice(const DropCounts& dropped, int kept, int candidates) {
   std::vector<std::string> advice;
   if (candidates <= 0 || 2 * kept >= candidates) return advice;
@@ -137,12 +119,6 @@ std::vector<std::string> PlanAdvice(const DropCounts& dropped, int kept, int can
                      " candidates " + what + ".");
   }
   return advice;
-}
-
-int DropCounts::Total() const {
-  int t = 0;
-  for (int c : counts) t += c;
-  return t;
 }
 
 double PlanEstimate::TravelShare() const {
@@ -789,6 +765,19 @@ std::string OptionsHash(const RigGeometry& rig, const PlanOptions& o) {
   return h.Hex();
 }
 
+// The tally of where candidates are kept, its cells sized to hold about six candidates each
+// (finer cells would call noise a gap), at least 1 mm tall, at most a quarter of the sensor.
+CoverageTally CoverageFor(const RigGeometry& rig, const PlanOptions& options) {
+  const double height = std::max(rig.sensor_mesh.Bounds().max().z(), 1e-3);
+  CoverageOptions o;
+  const double expected = static_cast<double>(options.probe_count) *
+                          (options.count_is_kept ? options.candidate_factor : 1);
+  o.band_mm = std::clamp(height * o.sectors * 6.0 / std::max(expected, 1.0), 1.0,
+                         std::max(1.0, height / 4.0));
+  o.min_candidates = 4;
+  return CoverageTally(height, o);
+}
+
 }  // namespace
 
 ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
@@ -804,8 +793,10 @@ ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
 
   std::vector<Candidate> kept;
   std::vector<TravelPlanner::Node> nodes;
+  CoverageTally coverage = CoverageFor(rig, options);
   auto add = [&](const SurfaceSample& s, bool count_drops) {
     auto res = filter.Classify(s.point, s.normal);
+    if (count_drops) coverage.Add(s.point, res.reason);
     if (res.reason) {
       if (count_drops) ++plan.dropped[*res.reason];
       return;
@@ -828,6 +819,7 @@ ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
     const auto samples = SampleBlueNoise(rig.sensor_mesh, bn, [&](const SurfaceSample& s) {
       ++plan.candidates;
       const auto res = filter.Classify(s.point, s.normal);
+      coverage.Add(s.point, res.reason);
       if (res.reason) ++plan.dropped[*res.reason];
       return !res.reason.has_value();
     });
@@ -837,6 +829,7 @@ ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
     plan.candidates = static_cast<int>(samples.size());
     for (const SurfaceSample& s : samples) add(s, true);
   }
+  plan.coverage_gaps = coverage.Gaps();
   if (kept.empty()) {
     std::ostringstream os;
     os << "MakeProbePlan: no probe point survives the filters (" << plan.candidates
@@ -1038,6 +1031,12 @@ Eigen::Vector3d VecFrom(const nlohmann::json& j) {
 
 }  // namespace
 
+nlohmann::json CoverageGapsJson(const std::vector<CoverageGap>& gaps) {
+  nlohmann::json out = nlohmann::json::array();
+  for (const CoverageGap& g : gaps) out.push_back(g.ToJson());
+  return out;
+}
+
 nlohmann::json PlanSummaryJson(const ProbePlan& plan, const PlanOptions& options) {
   nlohmann::json drops = nlohmann::json::object();
   for (int r = 0; r < kNumDropReasons; ++r) {
@@ -1049,6 +1048,7 @@ nlohmann::json PlanSummaryJson(const ProbePlan& plan, const PlanOptions& options
       {"kept", plan.probes.size()},
       {"dropped", drops},
       {"dropped_total", plan.dropped.Total()},
+      {"coverage_gaps", CoverageGapsJson(plan.coverage_gaps)},
       {"waypoints", plan.waypoints},
       {"detoured_moves", plan.detoured_moves},
       {"estimate", EstimateJson(plan.estimate)},

@@ -55,6 +55,8 @@
 #include "geometry/mesh.h"
 #include "geometry/rigid3.h"
 #include "geometry/shapes.h"
+#include "plan/coverage.h"
+#include "plan/drop_reason.h"
 #include "plan/motion_estimate.h"
 #include "plan/surface_distance.h"
 #include "rig/rig_config.h"
@@ -165,17 +167,6 @@ struct PlanOptions {
   void Check() const;
 };
 
-enum class DropReason { kFov, kViewAngle, kFin, kGel, kReach, kTravel };
-inline constexpr int kNumDropReasons = 6;
-std::string_view DropReasonName(DropReason reason);  // "fov", "view_angle", "fin", ...
-
-struct DropCounts {
-  std::array<int, kNumDropReasons> counts{};
-  int& operator[](DropReason r) { return counts[static_cast<int>(r)]; }
-  int operator[](DropReason r) const { return counts[static_cast<int>(r)]; }
-  int Total() const;
-};
-
 // When a plan keeps little (under half its candidates, or none), what to change for each reason
 // that dropped at least a tenth of them, most frequent first: one sentence each, naming the
 // config key ("[rig.fins] enabled = false", "[plan.machine] max_travel_mm", ...). Empty when the
@@ -217,6 +208,8 @@ struct ProbePlan {
   std::vector<PlannedProbe> probes;  // in run order
   int candidates = 0;                // points tested
   DropCounts dropped;
+  // Parts of the surface with candidates and no probe (plan/coverage.h), most candidates first.
+  std::vector<CoverageGap> coverage_gaps;
   int waypoints = 0;                          // total travel waypoints in the run order
   int detoured_moves = 0;                     // travels that needed waypoints
   std::vector<Eigen::Vector3d> park_machine;  // waypoints + final position back to the start
@@ -400,12 +393,17 @@ class ProbePointFilter {
   double cos_contact_ = 0.0;
 };
 
-// JSON summary: counts, drops per reason, waypoints, estimate (s, h, shares), sampling-order
-// estimate, tour gain, planning time, key options and machine settings.
+// JSON summary: counts, drops per reason, coverage gaps, waypoints, estimate (s, h, shares),
+// sampling-order estimate, tour gain, planning time, key options and machine settings.
 nlohmann::json PlanSummaryJson(const ProbePlan& plan, const PlanOptions& options);
+// The gaps as an array of CoverageGap::ToJson() (the summary's "coverage_gaps").
+nlohmann::json CoverageGapsJson(const std::vector<CoverageGap>& gaps);
 // Full plan (summary + every probe, plain numbers) and back, for storage. FromJson throws
 // std::invalid_argument for a malformed document.
 nlohmann::json PlanToJson(const ProbePlan& plan, const PlanOptions& options);
+// The stage name under which a run database keeps a run's plan (PlanToJson as the artifact,
+// PlanSummaryJson as its metrics).
+inline constexpr const char* kPlanArtifactStage = "plan";
 ProbePlan PlanFromJson(const nlohmann::json& json);
 
 }  // namespace gs360

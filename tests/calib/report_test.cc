@@ -225,8 +225,33 @@ TEST_CASE("RenderReportHtml: title, tables, curve, error map, decodable images",
   ex.recon_depth = 0.5 * ex.truth_depth;
   ex.poisson_depth = cv::Mat(16, 20, CV_64F, cv::Scalar(0.0));
   in.examples.push_back(ex);
+  // The plan's unprobed parts (plan/coverage.h): one band all around, one patch across +-180 deg
+  // (two rectangles), one malformed entry (left out, no throw).
+  in.coverage_gaps = Json::array({Json{{"z_min_mm", 0.0},
+                                       {"z_max_mm", 1.5},
+                                       {"azimuth_min_deg", -180.0},
+                                       {"azimuth_max_deg", 180.0},
+                                       {"all_around", true},
+                                       {"text", "base <reach>"}},
+                                  Json{{"z_min_mm", 27.0},
+                                       {"z_max_mm", 29.0},
+                                       {"azimuth_min_deg", 150.0},
+                                       {"azimuth_max_deg", -150.0},
+                                       {"all_around", false},
+                                       {"text", "tip"}},
+                                  Json("not an object")});
 
   const std::string html = RenderReportHtml(in);
+  const auto count = [&](const std::string& what) {
+    int n = 0;
+    for (auto at = html.find(what); at != std::string::npos; at = html.find(what, at + 1)) ++n;
+    return n;
+  };
+  CHECK(count("fill=\"url(#unprobed)\"") == 3);
+  CHECK(count("<li>") == 2);
+  CHECK(count("<title>not probed: tip</title>") == 2);
+  CHECK(html.find("<li>base &lt;reach&gt;</li>") != std::string::npos);
+  CHECK(html.find("hatched: not probed") != std::string::npos);
   CHECK(html.find("<title>run &lt;3&gt; &amp; &quot;cylinder&quot;</title>") != std::string::npos);
   CHECK(html.find("<h1>run &lt;3&gt; &amp; &quot;cylinder&quot;</h1>") != std::string::npos);
   CHECK(html.find("<3>") == std::string::npos);

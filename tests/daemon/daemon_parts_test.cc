@@ -8,6 +8,7 @@
 #include <thread>
 
 #include "base/json_reader.h"
+#include "daemon/calibration_inputs.h"
 #include "daemon/daemon.h"
 #include "daemon/daemon_config.h"
 #include "daemon/event_hub.h"
@@ -128,6 +129,21 @@ TEST_CASE("every motion line of a probe's program is recorded with its target", 
   CHECK((targets[3] - p.approach_machine).norm() < 1e-3);
   CHECK_FALSE(session::MotionTarget("G91 G0 Z5"));
   CHECK_FALSE(session::MotionTarget("G53 G0 X1 Y2"));
+}
+
+TEST_CASE("a stored run's calibration inputs carry where its plan could not probe", "[daemon]") {
+  const auto dir = test::FreshDir("gaps");
+  RunConfig config;
+  config.machine.uri = "/dev/ttyACM0";  // planned and stored, never connected
+  config.camera.uri = "replay:/nowhere";
+  config.plan.probe_count = 1500;
+  ProbePlan plan;
+  const std::int64_t run = RunEngine(dir / "gs360.db").CreateRun(config, &plan);
+  REQUIRE_FALSE(plan.coverage_gaps.empty());
+  const CalibrationInputs inputs = CalibrationInputsFor(RunDatabase(dir / "gs360.db"), run);
+  REQUIRE(inputs.coverage_gaps.size() == plan.coverage_gaps.size());
+  CHECK(inputs.coverage_gaps[0]["text"] == plan.coverage_gaps[0].Describe());
+  std::filesystem::remove_all(dir);
 }
 
 TEST_CASE("a plan that breaks a safety limit is refused at creation, naming the probe",
