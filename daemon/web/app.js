@@ -747,7 +747,15 @@
     if (!plan) return '';
     const parts = [`${plan.probes_total} probes of ${plan.candidates} candidates`];
     if (Number.isFinite(plan.estimate_s)) parts.push(`about ${fmtDuration(plan.estimate_s)}`);
-    return parts.join(', ');
+    // Where nothing will be probed, said before the run starts (the largest part; the API's
+    // plan lists them all).
+    const gaps = Array.isArray(plan.coverage_gaps) ? plan.coverage_gaps : [];
+    let text = parts.join(', ');
+    if (gaps.length && gaps[0] && typeof gaps[0].text === 'string') {
+      text += `. Not probed: ${gaps[0].text}`;
+      if (gaps.length > 1) text += ` (and ${gaps.length - 1} smaller part${gaps.length > 2 ? 's' : ''})`;
+    }
+    return text;
   }
 
   $('new-run-plan').addEventListener('click', async () => {

@@ -10,7 +10,9 @@ DevTools protocol on a pipe (--remote-debugging-pipe: no port, no extra package)
    #progress-done to show a number.
 2. Leaves the page alone and waits for #progress-done to grow: only the event stream (or the
    polling fallback, which "live" rules out) can change it.
-3. Narrows the viewport to a phone's (390x844): nothing may be wider than the screen
+3. Opens the new-run form and asks for an estimate: it must give the probe count and where
+   nothing will be probed (the plan's coverage gaps).
+4. Narrows the viewport to a phone's (390x844): nothing may be wider than the screen
    (no horizontal scrolling) and the runs list must sit above the run (one column).
 
 With --confirm, PAGE_URL shows a run that waits for the user to confirm its position: the page
@@ -249,6 +251,22 @@ def main():
         if later['events'] <= base['events']:
             log('FAIL: the progress changed, but not through the event stream')
             return 1
+
+        # The new-run form's estimate says, before any run, where nothing will be probed.
+        chrome.eval('document.getElementById("new-run-toggle").click()')
+        chrome.eval('document.getElementById("new-run-plan").click()')
+        deadline = time.monotonic() + 30
+        estimate = ''
+        while time.monotonic() < deadline:
+            estimate = chrome.eval('document.getElementById("new-run-estimate").textContent')
+            if 'candidates' in (estimate or ''):
+                break
+            time.sleep(0.25)
+        log(f'the new run\'s estimate: {estimate}')
+        if 'candidates' not in (estimate or '') or 'Not probed: z ' not in estimate:
+            log('FAIL: the estimate does not say how many probes and where none will be')
+            return 1
+        chrome.eval('document.getElementById("new-run-toggle").click()')
 
         chrome.viewport(390, 844, mobile=True)
         time.sleep(1.0)
