@@ -101,6 +101,33 @@ Json ResumeUntilDone(DaemonClient& client, std::int64_t id, Json run) {
   return run;
 }
 
+// Every stored press frame against the virtual rig's truth (the daemon may still run: read only).
+CaptureTruth PrintTruthCheck(const std::filesystem::path& db_path, const VirtualRig& rig,
+                             std::int64_t id) {
+  RunDatabaseOptions ro;
+  ro.read_only = true;
+  RunDatabase db(db_path, ro);
+  const CaptureTruth truth = CheckCapturesAgainstTruth(rig, db, id);
+  std::printf(
+      "  truth check: %d frames, %d taken off the press point, %d unverifiable; max |true "
+      "- planned| = %.4f mm, max |reported - true| = %.4f mm\n",
+      truth.frames, truth.off_target, truth.unverified, truth.max_error_mm,
+      truth.max_reported_error_mm);
+  return truth;
+}
+
+// The run's calibration on gs360d, followed to its end; true when it is done.
+bool CalibrateOnDaemon(DaemonClient& client, const std::string& url, std::int64_t id,
+                       int max_epochs) {
+  Json request = Json::object();
+  if (max_epochs > 0) request["max_epochs"] = max_epochs;
+  client.Post("/api/v1/runs/" + std::to_string(id) + "/calibrate", request);
+  const Json view = WatchCalibration(client, id, stdout);
+  std::printf("\nmodel: %s/api/v1/runs/%lld/model (or `gs360 export %lld --out DIR --daemon %s`)\n",
+              url.c_str(), static_cast<long long>(id), static_cast<long long>(id), url.c_str());
+  return view["state"] == "done";
+}
+
 int RunDemo(const DemoOptions& o, RunConfig config) {
   const auto t0 = std::chrono::steady_clock::now();
   const std::filesystem::path dir = std::filesystem::absolute(
@@ -152,30 +179,12 @@ int RunDemo(const DemoOptions& o, RunConfig config) {
   }
   const double acquisition_s = Since(t0);
 
-  RunDatabaseOptions ro;
-  ro.read_only = true;
-  const CaptureTruth truth = [&] {
-    RunDatabase db(dir / "gs360.db", ro);
-    return CheckCapturesAgainstTruth(rig, db, id);
-  }();
-  std::printf(
-      "  truth check: %d frames, %d taken off the press point, %d unverifiable; max |true "
-      "- planned| = %.4f mm, max |reported - true| = %.4f mm\n",
-      truth.frames, truth.off_target, truth.unverified, truth.max_error_mm,
-      truth.max_reported_error_mm);
+  const CaptureTruth truth = PrintTruthCheck(dir / "gs360.db", rig, id);
   const bool acquired = run["state"] == "done" && truth.off_target == 0 && truth.unverified == 0;
   bool calibrated = o.no_calibrate;
   if (acquired && !o.no_calibrate) {
     std::printf("\ncalibration on gs360d (%d checkerboard images of the lens):\n", boards);
-    Json request = Json::object();
-    if (o.max_epochs > 0) request["max_epochs"] = o.max_epochs;
-    client.Post("/api/v1/runs/" + std::to_string(id) + "/calibrate", request);
-    const Json view = WatchCalibration(client, id, stdout);
-    calibrated = view["state"] == "done";
-    std::printf(
-        "\nmodel: %s/api/v1/runs/%lld/model (or `gs360 export %lld --out DIR --daemon %s`)\n",
-        daemon.url().c_str(), static_cast<long long>(id), static_cast<long long>(id),
-        daemon.url().c_str());
+    calibrated = CalibrateOnDaemon(client, daemon.url(), id, o.max_epochs);
   }
   const int stopped = daemon.Stop();
   if (stopped != 0)
