@@ -550,8 +550,7 @@ std::string ErrorMapSvg(const std::vector<std::pair<Eigen::Vector3d, double>>& p
     << "</text><text x=\"" << kL + 240 << "\" y=\"" << ly + 26 << "\" text-anchor=\"end\">&ge;"
     << Fixed(clamp_mm, 3) << "</text><text x=\"" << kL + 250 << "\" y=\"" << ly + 10
     << "\">mean depth error per probe (mm); grey: no data"
-    << (gaps.is_array() && !gaps.empty() ? "; hatched: not probed (the plan's reason)" : "")
-    << "</text>\n";
+    << (gaps.is_array() && !gaps.empty() ? "; hatched: not probed" : "") << "</text>\n";
   s << "</svg>\n";
   if (gaps.is_array() && !gaps.empty()) {
     s << "<p>Not probed, so the model has not learnt these parts:</p>\n<ul>\n";
