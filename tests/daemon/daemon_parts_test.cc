@@ -239,17 +239,22 @@ TEST_CASE("the port lock follows the configured symlink to a replugged controlle
   Daemon daemon(config);
   CHECK_THROWS_AS(InstanceLock::Acquire(MachineLockPath(first.string()), "a", "test"),
                   LockHeldError);
+  // The symlink moves at once (a new link renamed over it): were it gone for a moment, the
+  // daemon's event pump could see a vanished device and let go of its lock (the test below).
+  const auto repoint = [&](const std::filesystem::path& target) {
+    const auto fresh = dir / "ttyCNC.new";
+    std::filesystem::create_symlink(target, fresh);
+    std::filesystem::rename(fresh, link);
+  };
   // The controller comes back under another name; the symlink follows it, and so does the lock.
-  std::filesystem::remove(link);
-  std::filesystem::create_symlink(second, link);
+  repoint(second);
   daemon.FollowPortLock();
   CHECK(InstanceLock::Acquire(MachineLockPath(first.string()), "a", "test").Held());
   CHECK_THROWS_AS(InstanceLock::Acquire(MachineLockPath(second.string()), "b", "test"),
                   LockHeldError);
   // A name another daemon holds is not taken over: the lock stays where it was.
   InstanceLock other = InstanceLock::Acquire(MachineLockPath(first.string()), "a", "other");
-  std::filesystem::remove(link);
-  std::filesystem::create_symlink(first, link);
+  repoint(first);
   daemon.FollowPortLock();
   CHECK_THROWS_AS(InstanceLock::Acquire(MachineLockPath(second.string()), "b", "test"),
                   LockHeldError);
