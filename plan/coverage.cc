@@ -102,7 +102,8 @@ std::vector<CoverageGap> CoverageTally::Gaps() const {
   const int n = options_.sectors;
   const double sector_deg = 360.0 / n;
   std::vector<CoverageGap> done;
-  // Open gaps of the band below, by their sector run, and the band they started in.
+  // Gaps still open in the band below: their sector run (its reasons summed over their bands so
+  // far) and the gap itself.
   std::vector<std::pair<Run, CoverageGap>> open;
   auto close = [&](std::pair<Run, CoverageGap>& g) {
     g.second.reason = MostFrequent(g.first.reasons);
