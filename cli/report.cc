@@ -2,6 +2,7 @@
 
 #include "base/format.h"
 #include "cli/progress.h"
+#include "cli/run_view.h"
 
 namespace gs360::cli {
 
@@ -22,14 +23,7 @@ void PrintPlanSummary(std::FILE* out, const ProbePlan& plan) {
        PlanAdvice(plan.dropped, static_cast<int>(plan.probes.size()), plan.candidates)) {
     std::fprintf(out, "  advice: %s\n", line.c_str());
   }
-  constexpr std::size_t kShown = 5;  // the largest; the rest are patches of a few candidates
-  for (std::size_t i = 0; i < plan.coverage_gaps.size() && i < kShown; ++i) {
-    std::fprintf(out, "  not probed: %s\n", plan.coverage_gaps[i].Describe().c_str());
-  }
-  if (plan.coverage_gaps.size() > kShown) {
-    std::fprintf(out, "  not probed: %zu more places, smaller\n",
-                 plan.coverage_gaps.size() - kShown);
-  }
+  PrintCoverageGaps(out, CoverageGapsJson(plan.coverage_gaps));
 }
 
 }  // namespace gs360::cli

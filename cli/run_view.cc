@@ -95,15 +95,18 @@ void PrintPlan(std::FILE* out, const Json& plan) {
       if (line.is_string()) std::fprintf(out, "  advice: %s\n", line.get<std::string>().c_str());
     }
   }
-  if (!plan.contains("coverage_gaps") || !plan["coverage_gaps"].is_array()) return;
+  if (plan.contains("coverage_gaps")) PrintCoverageGaps(out, plan["coverage_gaps"]);
+}
+
+void PrintCoverageGaps(std::FILE* out, const Json& gaps) {
+  if (!gaps.is_array()) return;
   // Where nothing will be probed, before the run: the model will not know those parts.
-  const Json& gaps = plan["coverage_gaps"];
-  constexpr std::size_t kShown = 5;
+  constexpr std::size_t kShown = 5;  // the largest; the rest are patches of a few candidates
   for (std::size_t i = 0; i < gaps.size() && i < kShown; ++i) {
     std::fprintf(out, "  not probed: %s\n", Text(gaps[i], "text").c_str());
   }
   if (gaps.size() > kShown) {
-    std::fprintf(out, "  not probed: %zu more places, smaller (the API's plan lists them all)\n",
+    std::fprintf(out, "  not probed: %zu more places, smaller (the plan's coverage_gaps)\n",
                  gaps.size() - kShown);
   }
 }

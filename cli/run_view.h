@@ -15,6 +15,9 @@ namespace gs360::cli {
 void PrintRun(std::FILE* out, const nlohmann::json& run);
 // The plan summary of a created run or of a plan_only answer.
 void PrintPlan(std::FILE* out, const nlohmann::json& plan);
+// "  not probed: ..." for the five largest of a plan's coverage_gaps (plan/coverage.h's JSON
+// array), then how many smaller ones there are. Nothing for an empty or missing array.
+void PrintCoverageGaps(std::FILE* out, const nlohmann::json& gaps);
 
 // Draws the run's progress (a bar with rate and ETA on a terminal, a line every 10 s otherwise)
 // on `progress_out` until the run is no longer active, then prints its final line on `out`.
