@@ -35,6 +35,7 @@ struct BenchReconArgs {
   double seconds = 2.0;  // per scene and thread count
   bool no_screen = false;
   int mlp_stride = 2;
+  double mlp_refine_slope = ReconstructionOptions{}.mlp_refine_slope;
   int passes = 0;  // 0: the model's height-field passes
   bool poisson = false;
   std::vector<std::string> scenes;  // empty: all
@@ -106,7 +107,8 @@ FrameReconstruction TimedFrame(const Reconstructor& r, const cv::Mat& frame, Sta
   for (const ContactRegion& region : detected.regions) {
     if (region.roi.width < 3 || region.roi.height < 3) continue;
     t0 = Clock::now();
-    const cv::Mat slopes = r.PredictSlopes(detected.difference, region.roi);
+    const cv::Mat slopes = r.PredictSlopes(detected.difference, region.roi,
+                                           r.SlopesWindow(region, r.options().integration));
     t->mlp += Since(t0);
     t0 = Clock::now();
     out.regions.push_back(r.IntegrateSlopes(slopes, region, r.options().integration));
@@ -285,6 +287,7 @@ int RunBenchRecon(const BenchReconArgs& a, const CommandContext& ctx) {
   const Reconstructor full = bundle.MakeReconstructor(2);
   bundle.reconstruction.screen = !a.no_screen;
   bundle.reconstruction.mlp_stride = a.mlp_stride;
+  bundle.reconstruction.mlp_refine_slope = a.mlp_refine_slope;
   if (a.passes > 0) {
     HeightFieldOptions& h = bundle.reconstruction.integration.height_field;
     h.iterations = std::min(h.iterations, a.passes);
@@ -313,6 +316,7 @@ int RunBenchRecon(const BenchReconArgs& a, const CommandContext& ctx) {
   const Json result{{"model", model_path.string()},
                     {"screen", !a.no_screen},
                     {"mlp_stride", a.mlp_stride},
+                    {"mlp_refine_slope", a.mlp_refine_slope},
                     {"height_field_passes_at_most", a.passes},
                     {"poisson", a.poisson},
                     {"mlp_sizes", bundle.mlp.sizes()},
@@ -341,6 +345,10 @@ void RegisterReconBench(CLI::App& bench, CommandContext& ctx) {
                 "Without the half-size look for frames without contact");
   cmd->add_option("--mlp-stride", a.mlp_stride, "The fast path's MLP grid (1: every pixel)")
       ->check(CLI::Range(1, 8));
+  cmd->add_option("--mlp-refine-slope", a.mlp_refine_slope,
+                  "The fast path evaluates every pixel of a grid cell whose nodes' slopes differ "
+                  "by more than this (default 0.2)")
+      ->check(CLI::NonNegativeNumber);
   cmd->add_option("--passes", a.passes,
                   "The fast path's height-field passes at most (0: the model's)")
       ->check(CLI::Range(0, 100));

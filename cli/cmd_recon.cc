@@ -47,6 +47,7 @@ struct ReconArgs {
   std::string record;
   int threads = 1;
   int mlp_stride = 2;  // measured by `bench recon`: within 5 % of every pixel's accuracy
+  double mlp_refine_slope = ReconstructionOptions{}.mlp_refine_slope;
 };
 
 cv::Mat ReadFrame(const fs::path& path, const cv::Size& size) {
@@ -277,6 +278,7 @@ int RunRecon(const ReconArgs& a, const CommandContext& ctx) {
   }
   ModelBundle bundle = LoadModel(a.model);
   bundle.reconstruction.mlp_stride = a.mlp_stride;
+  bundle.reconstruction.mlp_refine_slope = a.mlp_refine_slope;
   const Reconstructor recon = bundle.MakeReconstructor(a.threads);
   const cv::Size size(recon.map().width(), recon.map().height());
   if (!a.camera.empty()) return RunCamera(a, bundle, recon, ctx);
@@ -345,6 +347,10 @@ void RegisterReconCommand(CLI::App& app, CommandContext& ctx) {
   cmd->add_option("--mlp-stride", a.mlp_stride,
                   "The MLP on every n-th pixel, interpolated between (1: every pixel)")
       ->check(CLI::Range(1, 8));
+  cmd->add_option("--mlp-refine-slope", a.mlp_refine_slope,
+                  "With --mlp-stride > 1: every pixel of a grid cell whose nodes' slopes differ by "
+                  "more than this (an imprint's rim) gets the MLP too (default 0.2)")
+      ->check(CLI::NonNegativeNumber);
   cmd->add_option("--threads", a.threads, "Threads building the surface map at load")
       ->check(CLI::Range(1, 64));
   cmd->callback([&ctx] { ctx.exit_code = RunRecon(a, ctx); });

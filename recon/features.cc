@@ -53,8 +53,8 @@ namespace {
 void ContextFeaturesAtScale(const cv::Mat& diff, const cv::Mat& valid, const cv::Rect& roi,
                             double sigma_px, int offset, cv::Mat* out_mat) {
   const cv::Rect image(0, 0, diff.cols, diff.rows);
-  // Smooth a margin around the roi (plus one pixel for the central differences) so the roi's
-  // border sees the same filter as its inside.
+  // The weights of a margin around the roi, so the roi's border sees the same filter as its
+  // inside.
   const int margin = static_cast<int>(std::ceil(3.0 * sigma_px)) + 1;
   const cv::Rect big =
       cv::Rect(roi.x - margin, roi.y - margin, roi.width + 2 * margin, roi.height + 2 * margin) &
@@ -66,17 +66,22 @@ void ContextFeaturesAtScale(const cv::Mat& diff, const cv::Mat& valid, const cv:
     valid(big).convertTo(weight, CV_32F, 1.0 / 255.0);
     cv::threshold(weight, weight, 0.0, 1.0, cv::THRESH_BINARY);
   }
+  // Smoothed only where read: the roi and one pixel around it (the central differences). A
+  // filter on a view reads its parent's pixels beyond it (no BORDER_ISOLATED), so these are the
+  // values a blur of all of `big` would give there, at a fraction of its cost.
+  const cv::Rect need = cv::Rect(roi.x - 1, roi.y - 1, roi.width + 2, roi.height + 2) & image;
   cv::Mat smooth, wsum;
   // diff is already 0 outside `valid`, so blurring it is the numerator of the normalised
   // convolution.
-  cv::GaussianBlur(diff(big), smooth, cv::Size(), sigma_px, sigma_px, cv::BORDER_REPLICATE);
-  cv::GaussianBlur(weight, wsum, cv::Size(), sigma_px, sigma_px, cv::BORDER_REPLICATE);
+  cv::GaussianBlur(diff(need), smooth, cv::Size(), sigma_px, sigma_px, cv::BORDER_REPLICATE);
+  cv::GaussianBlur(weight(need - big.tl()), wsum, cv::Size(), sigma_px, sigma_px,
+                   cv::BORDER_REPLICATE);
   for (int v = 0; v < smooth.rows; ++v) {
     const float* ws = wsum.ptr<float>(v);
     auto* s = smooth.ptr<cv::Vec3f>(v);
     for (int u = 0; u < smooth.cols; ++u) s[u] = ws[u] > 1e-3f ? s[u] / ws[u] : cv::Vec3f(0, 0, 0);
   }
-  const int ox = roi.x - big.x, oy = roi.y - big.y;
+  const int ox = roi.x - need.x, oy = roi.y - need.y;
   const int channels = out_mat->channels();
   for (int y = 0; y < roi.height; ++y) {
     const int sy = y + oy;

@@ -166,6 +166,9 @@ void HeightFieldOptions::Check() const {
   if (!(min_view_angle_deg >= 0.0 && min_view_angle_deg < 90.0)) {
     Bad("min_view_angle_deg", min_view_angle_deg, "in [0, 90)");
   }
+  if (!(window_grow_fraction >= 0.0 && window_grow_fraction <= 5.0)) {
+    Bad("window_grow_fraction", window_grow_fraction, "in [0, 5]");
+  }
 }
 
 namespace {

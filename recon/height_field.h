@@ -37,9 +37,9 @@ struct HeightFieldOptions {
   // Projection / solve passes at most, 1..100. Where little is hidden the passes converge and
   // more of them help. Where the imprint is seen obliquely, each pass moves what is hidden, and
   // further passes are not reliably better: they stop earlier there (the measurements that chose
-  // 12 and 6 are in docs/benchmarks.md).
+  // 12 and 5, with the window below, are in docs/benchmarks.md).
   int iterations = 12;                   // imprints seen within oblique_view_angle_deg
-  int oblique_iterations = 6;            // imprints seen at oblique_view_angle_deg or beyond
+  int oblique_iterations = 5;            // imprints seen at oblique_view_angle_deg or beyond
   double oblique_view_angle_deg = 40.0;  // ImprintViewAngleDeg (recon/reconstructor.h), [0, 90]
   double tolerance = 1e-4;               // mm; stop when max |h change| falls below, >= 0
   double unobserved_weight = 1e-3;       // weight of edges no pixel observes, (0, 1]
@@ -51,6 +51,14 @@ struct HeightFieldOptions {
   // height field is (chosen by measurement: bench/bench_integration and the virtual rig's
   // validation, figures in docs/benchmarks.md, "Calibration"). [0, 90).
   double min_view_angle_deg = 0.0;
+  // Where the passes solve (the Reconstructor's HeightFieldWindow): the region's changed pixels
+  // (ContactRegion::blob) grown by this fraction of their box per side plus the detection's
+  // grow_px, clipped to the region; beyond it the gel is taken as undeformed (h = 0) and no slope
+  // is evaluated there. The region's own margin (ContactDetectionOptions::grow_fraction) is for
+  // the MLP's context; solved as well, it only adds unknowns and the membrane's drift (measured:
+  // docs/benchmarks.md, "Reconstruction"). A value >= the detection's grow_fraction solves on
+  // the whole region, as models before this option did. [0, 5].
+  double window_grow_fraction = 0.1;
   // The passes for an imprint seen at `imprint_view_deg` (iterations or oblique_iterations).
   template <typename Self, typename Visitor>
   static void Fields(Self& self, Visitor& visit) {
@@ -61,6 +69,7 @@ struct HeightFieldOptions {
     visit("unobserved_weight", self.unobserved_weight);
     visit("min_normal_dot", self.min_normal_dot);
     visit("min_view_angle_deg", self.min_view_angle_deg);
+    visit("window_grow_fraction", self.window_grow_fraction);
   }
   int Passes(double imprint_view_deg) const {
     return imprint_view_deg >= oblique_view_angle_deg ? oblique_iterations : iterations;

@@ -70,6 +70,10 @@ void ReconstructionOptions::Check() const {
     throw std::invalid_argument("ReconstructionOptions.mlp_stride = " + std::to_string(mlp_stride) +
                                 " must be in 1..8");
   }
+  if (!(mlp_refine_slope >= 0.0)) {
+    throw std::invalid_argument("ReconstructionOptions.mlp_refine_slope = " +
+                                std::to_string(mlp_refine_slope) + ": must be >= 0");
+  }
   difference.Check();
   detection.Check();
   gradients.Check();
@@ -106,7 +110,8 @@ Json ReconstructionOptionsToJson(const ReconstructionOptions& o) {
         {"height_field_tolerance", o.integration.height_field.tolerance},
         {"height_field_unobserved_weight", o.integration.height_field.unobserved_weight},
         {"height_field_min_normal_dot", o.integration.height_field.min_normal_dot},
-        {"height_field_min_view_angle_deg", o.integration.height_field.min_view_angle_deg}}},
+        {"height_field_min_view_angle_deg", o.integration.height_field.min_view_angle_deg},
+        {"height_field_window_grow_fraction", o.integration.height_field.window_grow_fraction}}},
   };
 }
 
@@ -167,6 +172,9 @@ ReconstructionOptions ReconstructionOptionsFromJson(const Json& json, const std:
     r.Read("height_field_unobserved_weight", &o.integration.height_field.unobserved_weight);
     r.Read("height_field_min_normal_dot", &o.integration.height_field.min_normal_dot);
     r.Read("height_field_min_view_angle_deg", &o.integration.height_field.min_view_angle_deg);
+    // Absent in bundles from before the window: the default window all the same (it depends on
+    // nothing the training saw).
+    r.Read("height_field_window_grow_fraction", &o.integration.height_field.window_grow_fraction);
     r.Finish();
   }
   root.Finish();
@@ -317,12 +325,13 @@ std::vector<int> GridLines(int n, int s) {
 
 }  // namespace
 
-void Reconstructor::EvaluateSlopes(const cv::Mat& diff, const cv::Mat& context, const cv::Rect& roi,
-                                   const std::vector<cv::Point>& pixels, cv::Mat* slopes) const {
+void Reconstructor::EvaluateSlopes(const cv::Mat& diff, const cv::Mat& context, const cv::Rect& win,
+                                   const cv::Rect& roi, const std::vector<cv::Point>& pixels,
+                                   cv::Mat* slopes) const {
   if (pixels.empty()) return;
   Eigen::MatrixXf x(FeatureCount(options_.difference), static_cast<Eigen::Index>(pixels.size()));
   for (std::size_t i = 0; i < pixels.size(); ++i) {
-    PixelFeatures(diff, context, roi.tl(), pixels[i].x, pixels[i].y,
+    PixelFeatures(diff, context, win.tl(), pixels[i].x, pixels[i].y,
                   x.col(static_cast<Eigen::Index>(i)).data());
   }
   const Eigen::MatrixXf y = mlp_.Forward(x);
@@ -333,63 +342,120 @@ void Reconstructor::EvaluateSlopes(const cv::Mat& diff, const cv::Mat& context, 
 }
 
 cv::Mat Reconstructor::PredictSlopes(const cv::Mat& diff, const cv::Rect& roi) const {
+  return PredictSlopes(diff, roi, roi);
+}
+
+cv::Mat Reconstructor::PredictSlopes(const cv::Mat& diff, const cv::Rect& roi,
+                                     const cv::Rect& window) const {
   cv::Mat slopes(roi.size(), CV_32FC2, cv::Scalar::all(0));
+  const cv::Rect win = window & roi;
+  if (win.empty()) return slopes;
+  // Context features only where the MLP runs (each smooths its own margin around the window).
   const cv::Mat context =
-      ContextFeatures(diff, visible_, roi, options_.difference.context_sigmas_px);
+      ContextFeatures(diff, visible_, win, options_.difference.context_sigmas_px);
   const int s = options_.mlp_stride;
   if (s == 1) {
     std::vector<cv::Point> pixels;
-    pixels.reserve(roi.area());
-    for (int v = roi.y; v < roi.y + roi.height; ++v) {
-      for (int u = roi.x; u < roi.x + roi.width; ++u) {
+    pixels.reserve(win.area());
+    for (int v = win.y; v < win.y + win.height; ++v) {
+      for (int u = win.x; u < win.x + win.width; ++u) {
         if (map_->visible(u, v)) pixels.emplace_back(u, v);
       }
     }
-    EvaluateSlopes(diff, context, roi, pixels, &slopes);
+    EvaluateSlopes(diff, context, win, roi, pixels, &slopes);
     return slopes;
   }
-  // Slopes are smooth over a few pixels: the MLP on a stride-s grid (its visible nodes), the
-  // pixels between by bilinear weights over the nodes evaluated, and the MLP again where too few
-  // of a pixel's nodes are visible (at a fin's or the view's edge).
-  const std::vector<int> xs = GridLines(roi.width, s), ys = GridLines(roi.height, s);
+  InterpolateSlopes(diff, context, roi, win, &slopes);
+  return slopes;
+}
+
+// Slopes are smooth over a few pixels: the MLP on a stride-s grid over `win` (its visible
+// nodes), the pixels between by bilinear weights over the nodes evaluated. The MLP again for
+// every pixel of a cell whose nodes disagree by more than ReconstructionOptions::
+// mlp_refine_slope (the imprint's rim, where a slope jumps), and where too few of a pixel's
+// nodes are visible (at a fin's or the view's edge). Grid positions below are relative to win;
+// slopes is roi-sized.
+void Reconstructor::InterpolateSlopes(const cv::Mat& diff, const cv::Mat& context,
+                                      const cv::Rect& roi, const cv::Rect& win,
+                                      cv::Mat* slopes_out) const {
+  cv::Mat& slopes = *slopes_out;
+  const int ox = win.x - roi.x, oy = win.y - roi.y;
+  const std::vector<int> xs = GridLines(win.width, options_.mlp_stride);
+  const std::vector<int> ys = GridLines(win.height, options_.mlp_stride);
+  auto visible = [&](int x, int y) { return map_->visible(win.x + x, win.y + y); };
+  auto at = [&](int x, int y) -> cv::Vec2f& { return slopes.at<cv::Vec2f>(oy + y, ox + x); };
   std::vector<cv::Point> nodes;
   for (int y : ys) {
     for (int x : xs) {
-      if (map_->visible(roi.x + x, roi.y + y)) nodes.emplace_back(roi.x + x, roi.y + y);
+      if (visible(x, y)) nodes.emplace_back(win.x + x, win.y + y);
     }
   }
-  EvaluateSlopes(diff, context, roi, nodes, &slopes);
-  std::vector<cv::Point> direct;
+  EvaluateSlopes(diff, context, win, roi, nodes, &slopes);
+  // Pixels to evaluate directly: every pixel of a cell whose visible nodes disagree.
+  cv::Mat direct_mask(win.size(), CV_8U, cv::Scalar::all(0));
+  const float refine = static_cast<float>(options_.mlp_refine_slope);
   for (std::size_t j = 0; j + 1 < ys.size(); ++j) {
-    for (int y = ys[j]; y <= ys[j + 1]; ++y) {
-      const float fy = static_cast<float>(y - ys[j]) / static_cast<float>(ys[j + 1] - ys[j]);
-      for (std::size_t i = 0; i + 1 < xs.size(); ++i) {
-        for (int x = xs[i]; x <= xs[i + 1]; ++x) {
-          const bool node = (x == xs[i] || x == xs[i + 1]) && (y == ys[j] || y == ys[j + 1]);
-          if (node || !map_->visible(roi.x + x, roi.y + y)) continue;
-          const float fx = static_cast<float>(x - xs[i]) / static_cast<float>(xs[i + 1] - xs[i]);
-          const int cx[2] = {xs[i], xs[i + 1]}, cy[2] = {ys[j], ys[j + 1]};
-          const float wx[2] = {1.0f - fx, fx}, wy[2] = {1.0f - fy, fy};
-          cv::Vec2f sum(0.0f, 0.0f);
-          float weight = 0.0f;
-          for (int b = 0; b < 2; ++b) {
-            for (int a = 0; a < 2; ++a) {
-              if (!map_->visible(roi.x + cx[a], roi.y + cy[b])) continue;
-              sum += wx[a] * wy[b] * slopes.at<cv::Vec2f>(cy[b], cx[a]);
-              weight += wx[a] * wy[b];
-            }
-          }
-          if (weight > 0.75f) {
-            slopes.at<cv::Vec2f>(y, x) = sum / weight;
-          } else {
-            direct.emplace_back(roi.x + x, roi.y + y);
-          }
+    for (std::size_t i = 0; i + 1 < xs.size(); ++i) {
+      float lo[2] = {1e30f, 1e30f}, hi[2] = {-1e30f, -1e30f};
+      for (const int y : {ys[j], ys[j + 1]}) {
+        for (const int x : {xs[i], xs[i + 1]}) {
+          if (!visible(x, y)) continue;
+          for (int c = 0; c < 2; ++c)
+            lo[c] = std::min(lo[c], at(x, y)[c]), hi[c] = std::max(hi[c], at(x, y)[c]);
         }
+      }
+      if (hi[0] - lo[0] > refine || hi[1] - lo[1] > refine) {
+        direct_mask(cv::Rect(xs[i], ys[j], xs[i + 1] - xs[i] + 1, ys[j + 1] - ys[j] + 1)) = 255;
       }
     }
   }
-  EvaluateSlopes(diff, context, roi, direct, &slopes);
-  return slopes;
+  std::vector<cv::Point> direct;
+  std::size_t j = 0;
+  for (int y = 0; y < win.height; ++y) {
+    while (j + 2 < ys.size() && y >= ys[j + 1]) ++j;
+    const float fy = static_cast<float>(y - ys[j]) / static_cast<float>(ys[j + 1] - ys[j]);
+    std::size_t i = 0;
+    for (int x = 0; x < win.width; ++x) {
+      while (i + 2 < xs.size() && x >= xs[i + 1]) ++i;
+      const bool node = (x == xs[i] || x == xs[i + 1]) && (y == ys[j] || y == ys[j + 1]);
+      if (node || !visible(x, y)) continue;
+      if (direct_mask.at<std::uint8_t>(y, x)) {
+        direct.emplace_back(win.x + x, win.y + y);
+        continue;
+      }
+      const float fx = static_cast<float>(x - xs[i]) / static_cast<float>(xs[i + 1] - xs[i]);
+      const int cx[2] = {xs[i], xs[i + 1]}, cy[2] = {ys[j], ys[j + 1]};
+      const float wx[2] = {1.0f - fx, fx}, wy[2] = {1.0f - fy, fy};
+      cv::Vec2f sum(0.0f, 0.0f);
+      float weight = 0.0f;
+      for (int b = 0; b < 2; ++b) {
+        for (int a = 0; a < 2; ++a) {
+          if (!visible(cx[a], cy[b])) continue;
+          sum += wx[a] * wy[b] * at(cx[a], cy[b]);
+          weight += wx[a] * wy[b];
+        }
+      }
+      if (weight > 0.75f) {
+        at(x, y) = sum / weight;
+      } else {
+        direct.emplace_back(win.x + x, win.y + y);
+      }
+    }
+  }
+  EvaluateSlopes(diff, context, win, roi, direct, &slopes);
+}
+
+cv::Rect HeightFieldWindow(const ContactRegion& region, const ContactDetectionOptions& detection,
+                           const HeightFieldOptions& height_field) {
+  const double f = height_field.window_grow_fraction;
+  if (f >= detection.grow_fraction) return region.roi;
+  const cv::Rect& b = region.blob;
+  const int gx = detection.grow_px + static_cast<int>(std::ceil(f * b.width));
+  const int gy = detection.grow_px + static_cast<int>(std::ceil(f * b.height));
+  const cv::Rect window =
+      cv::Rect(b.x - gx, b.y - gy, b.width + 2 * gx, b.height + 2 * gy) & region.roi;
+  // The height field needs 3 x 3 at least: else the whole region.
+  return window.width >= 3 && window.height >= 3 ? window : region.roi;
 }
 
 double ImprintViewAngleDeg(const SurfaceMap& map, const cv::Rect& roi, const cv::Mat& slopes) {
@@ -407,6 +473,25 @@ double ImprintViewAngleDeg(const SurfaceMap& map, const cv::Rect& roi, const cv:
   }
   const double mean = n > 0 ? sum / n : n_all > 0 ? sum_all / n_all : 0.0;
   return mean * 180.0 / std::numbers::pi;
+}
+
+// rho over roi from an integration over `window` (inside roi, in image pixels): `integrate`
+// gets the window and the same rectangle relative to roi, and returns rho over the window; beyond
+// it the undeformed gel (NaN where invisible).
+template <typename Integrate>
+cv::Mat Reconstructor::IntegrateInWindow(const cv::Rect& roi, const cv::Rect& window,
+                                         Integrate integrate) const {
+  if (window == roi) return integrate(roi, cv::Rect(cv::Point(0, 0), roi.size()));
+  cv::Mat rho(roi.size(), CV_64F, cv::Scalar::all(kNaN));
+  for (int y = 0; y < roi.height; ++y) {
+    for (int x = 0; x < roi.width; ++x) {
+      if (map_->visible(roi.x + x, roi.y + y))
+        rho.at<double>(y, x) = map_->rho0(roi.x + x, roi.y + y);
+    }
+  }
+  const cv::Rect inside(window.x - roi.x, window.y - roi.y, window.width, window.height);
+  integrate(window, inside).copyTo(rho(inside));
+  return rho;
 }
 
 RegionReconstruction Reconstructor::IntegrateSlopes(const cv::Mat& slopes,
@@ -445,7 +530,13 @@ RegionReconstruction Reconstructor::IntegrateSlopes(const cv::Mat& slopes,
     const cv::Mat h0 = IndentationFromRho(*map_, roi, IntegrateLogDepth(*map_, grads, poisson).rho);
     HeightFieldOptions passes = integration.height_field;
     passes.iterations = passes.Passes(imprint_view_deg);
-    out.rho = IntegrateHeightField(*map_, camera_, roi, out.normals, passes, h0).rho;
+    out.rho = IntegrateInWindow(
+        roi, HeightFieldWindow(region, options_.detection, integration.height_field),
+        [&](const cv::Rect& window, const cv::Rect& inside) {
+          return IntegrateHeightField(*map_, camera_, window, out.normals(inside), passes,
+                                      h0(inside))
+              .rho;
+        });
   } else {
     IntegrationOptions along_rays = integration;
     if (along_rays.method == IntegrationMethod::kHeightField) {
@@ -464,11 +555,19 @@ RegionReconstruction Reconstructor::IntegrateSlopes(const cv::Mat& slopes,
   return out;
 }
 
+cv::Rect Reconstructor::SlopesWindow(const ContactRegion& region,
+                                     const IntegrationOptions& integration) const {
+  // The height field uses no slope beyond its window (it takes the gel there as undeformed).
+  return integration.method == IntegrationMethod::kHeightField
+             ? HeightFieldWindow(region, options_.detection, integration.height_field)
+             : region.roi;
+}
+
 RegionReconstruction Reconstructor::ReconstructRegion(const cv::Mat& diff,
                                                       const ContactRegion& region,
                                                       const IntegrationOptions& integration) const {
   const auto t0 = std::chrono::steady_clock::now();
-  cv::Mat slopes = PredictSlopes(diff, region.roi);
+  cv::Mat slopes = PredictSlopes(diff, region.roi, SlopesWindow(region, integration));
   const double mlp_seconds = Seconds(t0);
   RegionReconstruction out = IntegrateSlopes(slopes, region, integration);
   out.mlp_seconds = mlp_seconds;

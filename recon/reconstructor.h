@@ -47,6 +47,10 @@ struct ReconstructionOptions {
   // The MLP on every n-th pixel of a region in u and v, bilinear between (1: every pixel).
   // Run-time, not serialised.
   int mlp_stride = 1;
+  // With mlp_stride > 1: a grid cell whose nodes' slopes differ by more than this (either
+  // component) is evaluated at every pixel (an imprint's rim, where bilinear blurs a jump).
+  // Run-time, not serialised. >= 0 (0: every cell with any difference).
+  double mlp_refine_slope = 0.2;
   // Throws std::invalid_argument naming the field (delegates to the nested Check()s).
   template <typename Self, typename Visitor>
   static void Fields(Self& self, Visitor& visit) {
@@ -56,6 +60,7 @@ struct ReconstructionOptions {
     visit("integration", self.integration);
     visit("screen", self.screen);
     visit("mlp_stride", self.mlp_stride);
+    visit("mlp_refine_slope", self.mlp_refine_slope);
   }
   void Check() const;
 };
@@ -103,6 +108,12 @@ struct FrameReconstruction {
 // when none does; 0 when none is visible. Picks the integrator for kHeightField.
 double ImprintViewAngleDeg(const SurfaceMap& map, const cv::Rect& roi, const cv::Mat& slopes);
 
+// Where the height field solves for a region (HeightFieldOptions::window_grow_fraction): the
+// blob grown, clipped to region.roi, in image pixels; region.roi itself when the fraction is at
+// least the detection's grow_fraction or the window would be smaller than 3 x 3.
+cv::Rect HeightFieldWindow(const ContactRegion& region, const ContactDetectionOptions& detection,
+                           const HeightFieldOptions& height_field);
+
 class Reconstructor {
  public:
   // `reference`: CV_8UC3 of the map's size. Throws std::invalid_argument for mismatched sizes,
@@ -132,8 +143,14 @@ class Reconstructor {
   // CV_32FC3 normalised difference, masked to visible pixels.
   cv::Mat Difference(const cv::Mat& frame, const cv::Mat& reference,
                      cv::Vec3d* gain = nullptr) const;
-  // MLP slopes (CV_32FC2) for the visible pixels of roi.
+  // MLP slopes (CV_32FC2, roi-sized) for the visible pixels of roi, or only of those inside
+  // `window` (image pixels; 0 elsewhere).
   cv::Mat PredictSlopes(const cv::Mat& normalized_difference, const cv::Rect& roi) const;
+  cv::Mat PredictSlopes(const cv::Mat& normalized_difference, const cv::Rect& roi,
+                        const cv::Rect& window) const;
+  // Where IntegrateSlopes uses slopes for `region` with these options (the height field's
+  // window, else region.roi): PredictSlopes need not evaluate the MLP beyond it.
+  cv::Rect SlopesWindow(const ContactRegion& region, const IntegrationOptions& integration) const;
   // Slopes -> normals -> integration on region.roi with the given integration options.
   RegionReconstruction ReconstructRegion(const cv::Mat& normalized_difference,
                                          const ContactRegion& region,
@@ -150,9 +167,16 @@ class Reconstructor {
   // ScreenWindow, and the LED drift gain it estimated on the way (when `gain` is not null).
   std::optional<cv::Rect> Screen(const cv::Mat& frame, const cv::Mat& reference,
                                  cv::Vec3d* gain) const;
-  // The MLP's slopes for `pixels` (inside roi), written into *slopes (roi-sized CV_32FC2).
-  void EvaluateSlopes(const cv::Mat& diff, const cv::Mat& context, const cv::Rect& roi,
-                      const std::vector<cv::Point>& pixels, cv::Mat* slopes) const;
+  // The MLP's slopes for `pixels` (inside win, inside roi), written into *slopes (roi-sized
+  // CV_32FC2); `context` covers win.
+  void EvaluateSlopes(const cv::Mat& diff, const cv::Mat& context, const cv::Rect& win,
+                      const cv::Rect& roi, const std::vector<cv::Point>& pixels,
+                      cv::Mat* slopes) const;
+  // PredictSlopes' stride-s grid over `win`, bilinear between its nodes; `context` covers win.
+  void InterpolateSlopes(const cv::Mat& diff, const cv::Mat& context, const cv::Rect& roi,
+                         const cv::Rect& win, cv::Mat* slopes) const;
+  template <typename Integrate>
+  cv::Mat IntegrateInWindow(const cv::Rect& roi, const cv::Rect& window, Integrate integrate) const;
 
   std::shared_ptr<const SurfaceMap> map_;
   FisheyeCamera camera_;

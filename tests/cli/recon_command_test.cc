@@ -242,6 +242,57 @@ TEST_CASE("the screen's window gives the full path's regions and difference insi
   CHECK(fast.Detect(empty, fast.reference()).difference.empty());
 }
 
+TEST_CASE("the fast path's slopes: only in the height field's window, every pixel at the rim",
+          "[cli][recon]") {
+  Fixture& f = Shared();
+  ModelBundle bundle = ReadModelBundle(f.model);
+  bundle.reconstruction.screen = false;
+  const Reconstructor every = bundle.MakeReconstructor(2);
+  const cv::Mat frame = cv::imread(f.contact.string(), cv::IMREAD_COLOR);
+  const DetectedContacts d = every.Detect(frame, every.reference());
+  REQUIRE(d.regions.size() == 1);
+  const ContactRegion& region = d.regions[0];
+  const IntegrationOptions& integration = bundle.reconstruction.integration;
+  REQUIRE(integration.method == IntegrationMethod::kHeightField);
+  // The window: the blob grown by window_grow_fraction (+ grow_px), inside the region.
+  const cv::Rect window = every.SlopesWindow(region, integration);
+  const HeightFieldOptions& hf = integration.height_field;
+  const int grow = bundle.reconstruction.detection.grow_px +
+                   static_cast<int>(std::ceil(hf.window_grow_fraction * region.blob.width));
+  CHECK(window.x == std::max(region.blob.x - grow, region.roi.x));
+  CHECK((window & region.roi) == window);
+  CHECK(window.area() < region.roi.area());
+  // Every pixel's slopes: the window's are the region's, none beyond it.
+  const cv::Mat all = every.PredictSlopes(d.difference, region.roi);
+  const cv::Mat windowed = every.PredictSlopes(d.difference, region.roi, window);
+  const cv::Rect inside = window - region.roi.tl();
+  CHECK(cv::norm(all(inside), windowed(inside), cv::NORM_INF) < 1e-4);
+  cv::Mat outside = windowed.clone();
+  outside(inside).setTo(cv::Scalar::all(0));
+  CHECK(cv::norm(outside, cv::NORM_INF) == 0.0);
+  // A grid of every second pixel: refining every cell whose nodes differ at all gives every
+  // pixel's slopes; without refinement, the rim is blurred.
+  bundle.reconstruction.mlp_stride = 2;
+  bundle.reconstruction.mlp_refine_slope = 0.0;
+  const cv::Mat refined =
+      bundle.MakeReconstructor(2).PredictSlopes(d.difference, region.roi, window);
+  bundle.reconstruction.mlp_refine_slope = 1e9;
+  const cv::Mat bilinear =
+      bundle.MakeReconstructor(2).PredictSlopes(d.difference, region.roi, window);
+  CHECK(cv::norm(refined, windowed, cv::NORM_INF) < 1e-4);
+  CHECK(cv::norm(bilinear, windowed, cv::NORM_INF) > 0.05);
+  // Past its own grow_fraction the window is the whole region, as before the window existed.
+  IntegrationOptions whole = integration;
+  whole.height_field.window_grow_fraction = bundle.reconstruction.detection.grow_fraction;
+  CHECK(every.SlopesWindow(region, whole) == region.roi);
+  whole.method = IntegrationMethod::kPoisson;
+  whole.height_field.window_grow_fraction = 0.0;
+  CHECK(every.SlopesWindow(region, whole) == region.roi);
+  ReconstructionOptions bad;
+  bad.mlp_refine_slope = -0.1;
+  CHECK_THROWS_WITH(bad.Check(), Contains("mlp_refine_slope"));
+}
+
 TEST_CASE("recon --camera runs live from the virtual rig's camera and records depth",
           "[cli][recon]") {
   Fixture& f = Shared();

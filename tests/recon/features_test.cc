@@ -165,6 +165,24 @@ TEST_CASE("context features: the smoothed change's gradient, per channel and sca
   CHECK(gs360::ContextFeatures(diff, cv::Mat(), roi, {}).empty());
 }
 
+TEST_CASE("context features: a pixel's features do not depend on the roi around it",
+          "[recon][features]") {
+  // Noise with a masked band: the features of a small roi's pixels are those of a large roi
+  // containing it (each blurs only where it reads, but from the whole image).
+  cv::Mat diff(120, 160, CV_32FC3);
+  cv::randu(diff, cv::Scalar::all(-1.0), cv::Scalar::all(1.0));
+  cv::Mat valid(diff.size(), CV_8U, cv::Scalar(255));
+  valid(cv::Rect(70, 0, 3, 120)).setTo(0);
+  diff.setTo(cv::Scalar::all(0), valid == 0);
+  const std::vector<double> sigmas = {1.5, 4.0, 10.0};
+  const cv::Rect large(20, 15, 120, 90), small(60, 40, 30, 25);
+  const cv::Mat a = gs360::ContextFeatures(diff, valid, large, sigmas);
+  const cv::Mat b = gs360::ContextFeatures(diff, valid, small, sigmas);
+  const cv::Mat a_small = a(small - large.tl());
+  CHECK(cv::norm(a_small.reshape(1), b.reshape(1), cv::NORM_INF) < 1e-6);
+  CHECK(cv::norm(b.reshape(1), cv::NORM_INF) > 0.01);  // not all zeros
+}
+
 TEST_CASE("context features: a masked fin reads as no change, bad input is refused",
           "[recon][features]") {
   // A uniform change with a masked band (diff is 0 there, as NormalizedDifference leaves it):

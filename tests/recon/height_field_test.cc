@@ -190,6 +190,9 @@ TEST_CASE("Height field options and inputs are checked", "[height_field]") {
   o = {};
   o.min_normal_dot = 1.0;
   CHECK_THROWS_WITH(o.Check(), Catch::Contains("min_normal_dot"));
+  o = {};
+  o.window_grow_fraction = 5.5;
+  CHECK_THROWS_WITH(o.Check(), Catch::Contains("window_grow_fraction"));
   const WallScene& w = Scene();
   const cv::Rect roi(300, 100, 20, 20);
   CHECK_THROWS_AS(IntegrateHeightField(w.map, w.camera, roi, cv::Mat(20, 20, CV_32FC2)),

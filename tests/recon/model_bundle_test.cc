@@ -135,6 +135,18 @@ TEST_CASE("model bundle: context scales travel with the model, and must match it
   split["integration"]["height_field_oblique_iterations"] = 0;
   CHECK_THROWS_WITH(ReconstructionOptionsFromJson(split, "bad bundle"),
                     Catch::Contains("bad bundle") && Catch::Contains("oblique_iterations"));
+  // The height field's window travels with the model; a bundle from before it gets the default.
+  split["integration"]["height_field_oblique_iterations"] = 3;
+  split["integration"]["height_field_window_grow_fraction"] = 0.25;
+  CHECK(ReconstructionOptionsFromJson(split, "new bundle")
+            .integration.height_field.window_grow_fraction == 0.25);
+  split["integration"].erase("height_field_window_grow_fraction");
+  CHECK(ReconstructionOptionsFromJson(split, "old bundle")
+            .integration.height_field.window_grow_fraction ==
+        HeightFieldOptions{}.window_grow_fraction);
+  split["integration"]["height_field_window_grow_fraction"] = -1.0;
+  CHECK_THROWS_WITH(ReconstructionOptionsFromJson(split, "bad bundle"),
+                    Catch::Contains("bad bundle") && Catch::Contains("window_grow_fraction"));
   // The options say 11 inputs, the MLP takes 5: refused, naming both.
   ModelBundle wrong = SmallBundle();
   wrong.reconstruction.difference.context_sigmas_px = {2.0};
