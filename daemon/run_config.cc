@@ -50,6 +50,7 @@ constexpr PlanIntField kPlanInts[] = {
     {"reference_every", &PlanOptions::reference_every},
     {"neighbours", &PlanOptions::neighbours},
     {"max_improvement_passes", &PlanOptions::max_improvement_passes},
+    {"checkpoint_probes", &PlanOptions::checkpoint_probes},
 };
 
 nlohmann::json PlanOptionsToJson(const PlanOptions& p) {

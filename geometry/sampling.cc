@@ -346,4 +346,55 @@ double MinimumSpacing(const std::vector<SurfaceSample>& samples) {
   }
 }
 
+std::vector<int> FarthestPointOrder(const std::vector<Eigen::Vector3d>& points, int first) {
+  const int n = static_cast<int>(points.size());
+  if (n == 0) return {};
+  if (first < 0 || first >= n) {
+    throw std::invalid_argument("FarthestPointOrder: first = " + std::to_string(first) +
+                                " is not in 0.." + std::to_string(n - 1));
+  }
+  std::vector<int> order;
+  order.reserve(static_cast<std::size_t>(n));
+  // Squared distance of every point to the nearest chosen one (-1: chosen).
+  std::vector<double> nearest(static_cast<std::size_t>(n), std::numeric_limits<double>::infinity());
+  int next = first;
+  while (next >= 0) {
+    order.push_back(next);
+    nearest[static_cast<std::size_t>(next)] = -1.0;
+    const Eigen::Vector3d& chosen = points[static_cast<std::size_t>(next)];
+    next = -1;
+    double farthest = -1.0;
+    for (int i = 0; i < n; ++i) {
+      double& d = nearest[static_cast<std::size_t>(i)];
+      if (d < 0.0) continue;
+      d = std::min(d, (points[static_cast<std::size_t>(i)] - chosen).squaredNorm());
+      if (d > farthest) farthest = d, next = i;
+    }
+  }
+  return order;
+}
+
+double PrefixCoveringRadius(const std::vector<Eigen::Vector3d>& points,
+                            const std::vector<int>& order, int k) {
+  const int n = static_cast<int>(points.size());
+  if (static_cast<int>(order.size()) != n || k < 1 || k > n) {
+    throw std::invalid_argument("PrefixCoveringRadius: k = " + std::to_string(k) + " of " +
+                                std::to_string(order.size()) + " ordered points, " +
+                                std::to_string(n) + " points");
+  }
+  double worst = 0.0;
+  for (const Eigen::Vector3d& p : points) {
+    double best = std::numeric_limits<double>::infinity();
+    for (int j = 0; j < k; ++j) {
+      const int index = order[static_cast<std::size_t>(j)];
+      if (index < 0 || index >= n) {
+        throw std::invalid_argument("PrefixCoveringRadius: order holds " + std::to_string(index));
+      }
+      best = std::min(best, (p - points[static_cast<std::size_t>(index)]).squaredNorm());
+    }
+    worst = std::max(worst, best);
+  }
+  return std::sqrt(worst);
+}
+
 }  // namespace gs360

@@ -76,4 +76,18 @@ double IdealBlueNoiseSpacing(double area, int count);
 // Minimum pairwise Euclidean distance (mm) of the samples (grid accelerated); +inf for < 2.
 double MinimumSpacing(const std::vector<SurfaceSample>& samples);
 
+// A progressive order of `points`: `first`, then repeatedly the point farthest (Euclidean) from
+// all chosen so far, ties to the lower index (Gonzalez's farthest-point traversal). Every prefix
+// of k points then covers the set within twice the best possible radius for k centres, so a run
+// stopped after any prefix has probed the whole surface evenly, only more sparsely. Returns a
+// permutation of 0..n-1 (empty for no points). O(n^2) time, O(n) memory. Throws
+// std::invalid_argument when `first` is out of range for a non-empty set.
+std::vector<int> FarthestPointOrder(const std::vector<Eigen::Vector3d>& points, int first = 0);
+
+// The covering radius of a prefix: the largest distance (mm) from any of `points` to the nearest
+// of its first `k` entries in `order` (k in 1..n). O(n k). Throws std::invalid_argument for k or
+// order out of range.
+double PrefixCoveringRadius(const std::vector<Eigen::Vector3d>& points,
+                            const std::vector<int>& order, int k);
+
 }  // namespace gs360

@@ -173,6 +173,7 @@ RigGeometry MakeRigGeometry() {
 
 void PlanOptions::Check() const {
   if (probe_count < 1) BadField("probe_count", probe_count, "must be >= 1");
+  if (checkpoint_probes < 0) BadField("checkpoint_probes", checkpoint_probes, "must be >= 0");
   if (!(candidate_factor >= 1.0)) BadField("candidate_factor", candidate_factor, "must be >= 1");
   RequirePositive("ball_radius", ball_radius);
   RequirePositive("press_depth", press_depth);
@@ -757,6 +758,8 @@ std::string OptionsHash(const RigGeometry& rig, const PlanOptions& o) {
   h.AddPod(static_cast<int>(o.snap_to_profile)).AddPod(static_cast<int>(o.base_is_obstacle));
   h.AddPod(o.reference_every).AddPod(static_cast<int>(o.optimise_order)).AddPod(o.neighbours);
   h.AddPod(o.max_improvement_passes).AddPod(static_cast<int>(o.junction_model));
+  // Only when set, so that the plans stored before the option keep their hash.
+  if (o.checkpoint_probes > 0) h.AddPod(o.checkpoint_probes);
   h.AddPod(static_cast<int>(o.return_to_start)).AddPod(o.machine.planner_blocks);
   for (int i = 0; i < 3; ++i) {
     h.AddDouble(o.start_machine[i]).AddDouble(o.machine.max_rate_mm_per_min[i]);
@@ -780,19 +783,18 @@ CoverageTally CoverageFor(const RigGeometry& rig, const PlanOptions& options) {
 
 }  // namespace
 
-ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
-  const auto t0 = std::chrono::steady_clock::now();
-  options.Check();
-  rig.Check();
-  const ProbePointFilter filter(rig, options);
-  const TravelPlanner& travel = filter.travel();
+namespace {
 
-  ProbePlan plan;
-  plan.start_machine = options.start_machine;
-  plan.options_hash = OptionsHash(rig, options);
-
-  std::vector<Candidate> kept;
-  std::vector<TravelPlanner::Node> nodes;
+// The blue-noise candidates through the filters: the kept ones with their travel nodes, and the
+// plan's candidate count, drop counts and coverage gaps. Throws std::runtime_error when none is
+// kept, with what would change that.
+void SampleCandidates(const RigGeometry& rig, const PlanOptions& options,
+                      const ProbePointFilter& filter, ProbePlan* plan_out,
+                      std::vector<Candidate>* kept_out,
+                      std::vector<TravelPlanner::Node>* nodes_out) {
+  ProbePlan& plan = *plan_out;
+  std::vector<Candidate>& kept = *kept_out;
+  std::vector<TravelPlanner::Node>& nodes = *nodes_out;
   CoverageTally coverage = CoverageFor(rig, options);
   auto add = [&](const SurfaceSample& s, bool count_drops) {
     auto res = filter.Classify(s.point, s.normal);
@@ -841,6 +843,79 @@ ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
     for (const std::string& line : PlanAdvice(plan.dropped, 0, plan.candidates)) os << " " << line;
     throw std::runtime_error(os.str());
   }
+}
+
+// One tour over every kept probe; the nearest-neighbour tour's estimate goes to the plan's
+// report when the local search runs.
+std::vector<int> TourOrder(const std::vector<Candidate>& kept, const PlanOptions& options,
+                           const TourOptions& tour_options, RouteCache* cache,
+                           const std::vector<TravelPlanner::Node>& nodes,
+                           const TravelPlanner::Node& start, const TravelPlanner& travel,
+                           ProbePlan* plan) {
+  const int n = static_cast<int>(kept.size());
+  std::vector<Eigen::Vector3d> positions(n);
+  for (int i = 0; i < n; ++i) positions[i] = kept[i].approach_machine;
+  const auto time = [&](int i, int j) { return cache->Time(i, j); };
+  const auto lower = [&](int i, int j) { return cache->Lower(i, j); };
+  const TourResult tour = SolveTour(positions, options.start_machine, time, lower, tour_options);
+  if (options.optimise_order) {
+    TourOptions nn_only = tour_options;
+    nn_only.optimise = false;
+    const TourResult nn = SolveTour(positions, options.start_machine, time, lower, nn_only);
+    std::vector<Eigen::Vector3d> nn_park;
+    const auto probes = BuildProbes(nn.order, kept, nodes, start, travel, options, &nn_park);
+    plan->nearest_neighbour_s = EstimatePlan(probes, nn_park, options).Total();
+  }
+  return tour.order;
+}
+
+// options.checkpoint_probes > 0: the kept probes in their farthest-point order, cut into rounds
+// of that many, each round toured on its own from where the last one ended (the first from the
+// start position).
+std::vector<int> RoundsOrder(const std::vector<Candidate>& kept, const PlanOptions& options,
+                             const TourOptions& tour_options, RouteCache* cache) {
+  const int n = static_cast<int>(kept.size());
+  std::vector<Eigen::Vector3d> points(n);
+  for (int i = 0; i < n; ++i) points[i] = kept[i].point;
+  const std::vector<int> progressive = FarthestPointOrder(points, 0);
+  std::vector<int> order;
+  order.reserve(static_cast<std::size_t>(n));
+  int depot = n;  // RouteCache's index of the start position
+  for (int first = 0; first < n; first += options.checkpoint_probes) {
+    const int last = std::min(n, first + options.checkpoint_probes);
+    const std::vector<int> round(progressive.begin() + first, progressive.begin() + last);
+    const int m = static_cast<int>(round.size());
+    // Local index m is the round's depot: the last probe toured, or the start.
+    const auto global = [&](int i) { return i == m ? depot : round[static_cast<std::size_t>(i)]; };
+    std::vector<Eigen::Vector3d> positions(m);
+    for (int i = 0; i < m; ++i) positions[i] = kept[round[i]].approach_machine;
+    const Eigen::Vector3d from =
+        depot == n ? options.start_machine : kept[static_cast<std::size_t>(depot)].approach_machine;
+    const TourResult tour = SolveTour(
+        positions, from, [&](int i, int j) { return cache->Time(global(i), global(j)); },
+        [&](int i, int j) { return cache->Lower(global(i), global(j)); }, tour_options);
+    for (const int i : tour.order) order.push_back(round[static_cast<std::size_t>(i)]);
+    depot = order.back();
+  }
+  return order;
+}
+
+}  // namespace
+
+ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
+  const auto t0 = std::chrono::steady_clock::now();
+  options.Check();
+  rig.Check();
+  const ProbePointFilter filter(rig, options);
+  const TravelPlanner& travel = filter.travel();
+
+  ProbePlan plan;
+  plan.start_machine = options.start_machine;
+  plan.options_hash = OptionsHash(rig, options);
+
+  std::vector<Candidate> kept;
+  std::vector<TravelPlanner::Node> nodes;
+  SampleCandidates(rig, options, filter, &plan, &kept, &nodes);
 
   const TravelPlanner::Node start = travel.MakeNode(options.start_machine, true);
   const int n = static_cast<int>(kept.size());
@@ -854,36 +929,30 @@ ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
     plan.sampling_order_estimate = EstimatePlan(probes, park, options);
   }
 
-  // The tour.
+  // The tour, or the rounds.
   RouteCache cache(travel, nodes, start);
-  std::vector<Eigen::Vector3d> positions(n);
-  for (int i = 0; i < n; ++i) positions[i] = kept[i].approach_machine;
   TourOptions tour_options;
   tour_options.neighbours = options.neighbours;
   tour_options.max_passes = options.max_improvement_passes;
   tour_options.optimise = options.optimise_order;
-  const TourResult tour = SolveTour(
-      positions, options.start_machine, [&](int i, int j) { return cache.Time(i, j); },
-      [&](int i, int j) { return cache.Lower(i, j); }, tour_options);
-
-  if (options.optimise_order) {
-    // Keep the nearest-neighbour tour's estimate for the report.
-    TourOptions nn_only = tour_options;
-    nn_only.optimise = false;
-    const TourResult nn = SolveTour(
-        positions, options.start_machine, [&](int i, int j) { return cache.Time(i, j); },
-        [&](int i, int j) { return cache.Lower(i, j); }, nn_only);
-    std::vector<Eigen::Vector3d> nn_park;
-    const auto probes = BuildProbes(nn.order, kept, nodes, start, travel, options, &nn_park);
-    plan.nearest_neighbour_s = EstimatePlan(probes, nn_park, options).Total();
+  plan.checkpoint_probes = options.checkpoint_probes;
+  std::vector<int> order;
+  if (options.checkpoint_probes > 0) {
+    order = RoundsOrder(kept, options, tour_options, &cache);
+  } else {
+    order = TourOrder(kept, options, tour_options, &cache, nodes, start, travel, &plan);
   }
 
-  plan.probes = BuildProbes(tour.order, kept, nodes, start, travel, options, &park);
+  plan.probes = BuildProbes(order, kept, nodes, start, travel, options, &park);
   plan.park_machine = park;
   plan.estimate = EstimatePlan(plan.probes, plan.park_machine, options);
-  if (!options.optimise_order) plan.nearest_neighbour_s = plan.estimate.Total();
-  // Never worse than the sampling order (possible only for tiny plans with junction effects).
-  if (plan.estimate.Total() > plan.sampling_order_estimate.Total()) {
+  if (!options.optimise_order || options.checkpoint_probes > 0) {
+    plan.nearest_neighbour_s = plan.estimate.Total();
+  }
+  // Never worse than the sampling order (possible only for tiny plans with junction effects),
+  // unless the rounds are asked for: they are worth their time.
+  if (options.checkpoint_probes == 0 &&
+      plan.estimate.Total() > plan.sampling_order_estimate.Total()) {
     plan.probes = BuildProbes(sampling, kept, nodes, start, travel, options, &park);
     plan.park_machine = park;
     plan.estimate = plan.sampling_order_estimate;
@@ -1055,6 +1124,7 @@ nlohmann::json PlanSummaryJson(const ProbePlan& plan, const PlanOptions& options
       {"sampling_order_estimate", EstimateJson(plan.sampling_order_estimate)},
       {"nearest_neighbour_s", plan.nearest_neighbour_s},
       {"tour_gain", plan.TourGain()},
+      {"checkpoint_probes", plan.checkpoint_probes},
       {"planning_seconds", plan.planning_seconds},
       {"options_hash", plan.options_hash},
       {"options",
@@ -1126,6 +1196,7 @@ ProbePlan PlanFromJson(const nlohmann::json& j) {
     plan.estimate = EstimateFromJson(j.at("estimate"));
     plan.sampling_order_estimate = EstimateFromJson(j.at("sampling_order_estimate"));
     plan.nearest_neighbour_s = j.at("nearest_neighbour_s").get<double>();
+    plan.checkpoint_probes = j.value("checkpoint_probes", 0);  // absent before the rounds
     plan.planning_seconds = j.at("planning_seconds").get<double>();
     plan.options_hash = j.at("options_hash").get<std::string>();
     plan.start_machine = VecFrom(j.at("start_machine"));

@@ -153,6 +153,13 @@ struct PlanOptions {
 
   // Order and estimate.
   bool optimise_order = true;
+  // 0: one tour over every probe (the fastest run). N > 0: the probes in rounds of N, each
+  // round's probes chosen progressively (geometry/sampling.h FarthestPointOrder: the first N
+  // cover the whole reachable surface sparsely, each later round fills in evenly) and toured
+  // on their own, from where the last round ended. A run stopped after any round has probed the
+  // surface evenly (for calibrating on what was captured so far); the rounds cost machine time
+  // against the single tour, which the estimate shows. >= 0.
+  int checkpoint_probes = 0;
   int neighbours = 10;              // candidate list size for 2-opt / Or-opt
   int max_improvement_passes = 50;  // full passes of the local search (deterministic cap)
   JunctionModel junction_model = JunctionModel::kGrbl;
@@ -210,6 +217,7 @@ struct ProbePlan {
   DropCounts dropped;
   // Parts of the surface with candidates and no probe (plan/coverage.h), most candidates first.
   std::vector<CoverageGap> coverage_gaps;
+  int checkpoint_probes = 0;                  // the options' rounds (0: one tour)
   int waypoints = 0;                          // total travel waypoints in the run order
   int detoured_moves = 0;                     // travels that needed waypoints
   std::vector<Eigen::Vector3d> park_machine;  // waypoints + final position back to the start

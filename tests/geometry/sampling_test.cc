@@ -1,8 +1,10 @@
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <numbers>
+#include <numeric>
 #include <vector>
 
 #include "geometry/sampling.h"
@@ -152,4 +154,39 @@ TEST_CASE("Sampling options and degenerate input", "[sampling]") {
   std::vector<SurfaceSample> two(2);
   two[1].point = Eigen::Vector3d(3, 4, 0);
   CHECK(MinimumSpacing(two) == Approx(5.0));
+}
+
+TEST_CASE("Farthest-point order: every prefix covers the whole set evenly", "[sampling]") {
+  const Finger& f = TheFinger();
+  BlueNoiseOptions o;
+  o.count = 1200;
+  std::vector<Eigen::Vector3d> points;
+  for (const SurfaceSample& s : SampleBlueNoise(f.mesh, o)) points.push_back(s.point);
+  const std::vector<int> order = FarthestPointOrder(points, 7);
+  REQUIRE(order.size() == points.size());
+  CHECK(order.front() == 7);
+  std::vector<int> sorted = order;
+  std::sort(sorted.begin(), sorted.end());
+  for (int i = 0; i < static_cast<int>(sorted.size()); ++i) REQUIRE(sorted[i] == i);
+  // The candidate-draw order (what the sampler returns) against the progressive one: a prefix
+  // of either is a k-point subset; the progressive prefix leaves no part of the surface far
+  // from it. Against the hexagonal spacing of k points, its covering radius stays within a
+  // small factor; the draw order's prefixes leave holes several spacings wide.
+  std::vector<int> draw(points.size());
+  std::iota(draw.begin(), draw.end(), 0);
+  for (const int k : {50, 150, 400}) {
+    const double spacing = IdealBlueNoiseSpacing(f.mesh.Area(), k);
+    const double progressive = PrefixCoveringRadius(points, order, k);
+    INFO("k " << k << " spacing " << spacing << " progressive " << progressive << " draw "
+              << PrefixCoveringRadius(points, draw, k));
+    CHECK(progressive < 1.0 * spacing);
+    CHECK(PrefixCoveringRadius(points, draw, k) > 1.3 * progressive);
+  }
+  CHECK(PrefixCoveringRadius(points, order, static_cast<int>(points.size())) == 0.0);
+  // Deterministic, and the degenerate cases.
+  CHECK(FarthestPointOrder(points, 7) == order);
+  CHECK(FarthestPointOrder({}).empty());
+  CHECK(FarthestPointOrder({Eigen::Vector3d::Zero()}) == std::vector<int>{0});
+  CHECK_THROWS_WITH(FarthestPointOrder(points, -1), Catch::Contains("first = -1"));
+  CHECK_THROWS_AS(PrefixCoveringRadius(points, order, 0), std::invalid_argument);
 }

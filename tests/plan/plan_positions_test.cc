@@ -6,6 +6,7 @@
 #include <nlohmann/json.hpp>
 #include <numbers>
 
+#include "geometry/sampling.h"
 #include "plan/plan.h"
 
 using namespace gs360;
@@ -119,6 +120,52 @@ TEST_CASE("The tour is a deterministic permutation no slower than the sampling o
   const ProbePlan c = MakeProbePlan(rig, o2);
   CHECK(c.options_hash != a.options_hash);
   CHECK(c.probes.front().point_sensor != a.probes.front().point_sensor);
+}
+
+TEST_CASE("Rounds: every checkpoint's prefix covers the reachable surface evenly", "[plan]") {
+  PlanOptions o = SmallPlan(600);
+  const RigGeometry rig = MakeRigGeometry();
+  const ProbePlan tour = MakeProbePlan(rig, o);
+  o.checkpoint_probes = 100;
+  const ProbePlan rounds = MakeProbePlan(rig, o);
+  const int n = static_cast<int>(rounds.probes.size());
+  REQUIRE(n == static_cast<int>(tour.probes.size()));
+  CHECK(rounds.checkpoint_probes == 100);
+  CHECK(rounds.options_hash != tour.options_hash);
+  // The same probes, another order.
+  std::vector<int> a, b;
+  for (const PlannedProbe& p : rounds.probes) a.push_back(p.sample_index);
+  for (const PlannedProbe& p : tour.probes) b.push_back(p.sample_index);
+  CHECK(a != b);
+  std::sort(a.begin(), a.end());
+  std::sort(b.begin(), b.end());
+  CHECK(a == b);
+  // At every checkpoint, no kept point is far from a probe already pressed. The single tour
+  // sweeps the surface region by region: its prefixes leave whole parts unprobed.
+  std::vector<Eigen::Vector3d> points;
+  std::vector<int> rounds_order(n), tour_order(n);
+  for (int k = 0; k < n; ++k) points.push_back(rounds.probes[k].point_sensor);
+  for (int k = 0; k < n; ++k) rounds_order[k] = k;
+  for (int k = 0; k < n; ++k) {
+    for (int j = 0; j < n; ++j) {
+      if (tour.probes[k].sample_index == rounds.probes[j].sample_index) tour_order[k] = j;
+    }
+  }
+  for (int k = 100; k < n; k += 100) {
+    const double r_rounds = PrefixCoveringRadius(points, rounds_order, k);
+    const double r_tour = PrefixCoveringRadius(points, tour_order, k);
+    INFO("checkpoint " << k << ": covering radius " << r_rounds << " mm, single tour " << r_tour);
+    CHECK(r_rounds < 0.5 * r_tour);
+  }
+  // Each round is toured: the rounds cost time against the single tour, but far less than
+  // visiting the probes in their progressive order one by one would.
+  CHECK(rounds.estimate.Total() > tour.estimate.Total());
+  CHECK(rounds.estimate.travel_s < 0.5 * rounds.sampling_order_estimate.travel_s);
+  // The plan says so, and reads back.
+  CHECK(PlanSummaryJson(rounds, o).at("checkpoint_probes") == 100);
+  CHECK(PlanFromJson(PlanToJson(rounds, o)).checkpoint_probes == 100);
+  o.checkpoint_probes = -1;
+  CHECK_THROWS_WITH(o.Check(), Contains("checkpoint_probes"));
 }
 
 TEST_CASE("EstimatePlan adds up dwell, host time and references as documented", "[plan]") {
