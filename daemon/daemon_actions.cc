@@ -71,7 +71,8 @@ Json PlanSummary(const ProbePlan& plan) {
       {"advice", PlanAdvice(plan.dropped, static_cast<int>(plan.probes.size()), plan.candidates)},
       {"coverage_gaps", CoverageGapsJson(plan.coverage_gaps)},
       {"estimate_s", plan.estimate.Total()},
-      {"tour_gain", plan.TourGain()}};
+      {"tour_gain", plan.TourGain()},
+      {"checkpoint_probes", plan.checkpoint_probes}};
 }
 
 }  // namespace

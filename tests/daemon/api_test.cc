@@ -93,7 +93,18 @@ TEST_CASE("api: plan, start, pause and resume a run, and two resumes at once get
   const Json plan = Body(r);
   CHECK(plan["probes_total"].get<int>() > 20);
   CHECK(plan["estimate_s"].get<double>() > 0.0);
+  CHECK(plan["checkpoint_probes"] == 0);
   CHECK(Body(c.Get("/api/v1/runs"))["runs"].empty());
+  // Rounds that each cover the surface: asked for in the request, said in the summary.
+  r = PostJson(c, "/api/v1/runs",
+               {{"probes", 60}, {"plan_only", true}, {"plan", {{"checkpoint_probes", 10}}}});
+  REQUIRE(r->status == 200);
+  CHECK(Body(r)["checkpoint_probes"] == 10);
+  CHECK(Body(r)["probes_total"] == plan["probes_total"]);
+  r = PostJson(c, "/api/v1/runs", {{"probes", 60}, {"plan", {{"checkpoint_probes", -1}}}});
+  CHECK(r->status == 400);
+  CHECK(Body(r)["error"]["message"].get<std::string>().find("checkpoint_probes") !=
+        std::string::npos);
   // A plan that keeps little says what to change; one that keeps nothing is a 400 saying it.
   r = PostJson(c, "/api/v1/runs",
                {{"probes", 60}, {"plan_only", true}, {"plan", {{"max_view_angle_rad", 0.5}}}});
