@@ -353,8 +353,8 @@ cv::Mat Reconstructor::PredictSlopes(const cv::Mat& diff, const cv::Rect& roi,
   // Context features only where the MLP runs (each smooths its own margin around the window).
   const cv::Mat context =
       ContextFeatures(diff, visible_, win, options_.difference.context_sigmas_px);
-  const int s = options_.mlp_stride;
-  if (s == 1) {
+  // A window one pixel wide or tall has no grid cells to interpolate in.
+  if (options_.mlp_stride == 1 || win.width < 2 || win.height < 2) {
     std::vector<cv::Point> pixels;
     pixels.reserve(win.area());
     for (int v = win.y; v < win.y + win.height; ++v) {

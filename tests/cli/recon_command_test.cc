@@ -281,6 +281,11 @@ TEST_CASE("the fast path's slopes: only in the height field's window, every pixe
       bundle.MakeReconstructor(2).PredictSlopes(d.difference, region.roi, window);
   CHECK(cv::norm(refined, windowed, cv::NORM_INF) < 1e-4);
   CHECK(cv::norm(bilinear, windowed, cv::NORM_INF) > 0.05);
+  // A window one pixel wide has no cells: every pixel of it is evaluated.
+  const cv::Rect column(window.x + window.width / 2, window.y, 1, window.height);
+  const cv::Mat thin = bundle.MakeReconstructor(2).PredictSlopes(d.difference, region.roi, column);
+  const cv::Rect column_in = column - region.roi.tl();
+  CHECK(cv::norm(thin(column_in), all(column_in), cv::NORM_INF) < 1e-4);
   // Past its own grow_fraction the window is the whole region, as before the window existed.
   IntegrationOptions whole = integration;
   whole.height_field.window_grow_fraction = bundle.reconstruction.detection.grow_fraction;
