@@ -219,6 +219,31 @@ Json Accuracy(const Reconstructor& r, const FrameReconstruction& rec, const Scen
               {"partial", partial}};
 }
 
+// Issue 15's targets: frames per second on one thread (a frame without contact, one contact,
+// three), two threads over one, and the fast path's error over the full path's.
+constexpr double kNoContactFps = 1000.0;
+constexpr double kOneContactFps = 100.0;
+constexpr double kThreeContactsFps = 50.0;
+constexpr double kTwoThreadSpeedup = 1.8;
+constexpr double kErrorOverFullPath = 1.05;
+
+double TargetFps(const std::string& scene) {
+  return scene == "no contact"       ? kNoContactFps
+         : scene == "three contacts" ? kThreeContactsFps
+                                     : kOneContactFps;
+}
+
+// The targets and whether this scene's figures meet them.
+Json Targets(const std::string& scene, double fps, double speedup, double error_ratio) {
+  return Json{{"frames_per_s_1_thread", TargetFps(scene)},
+              {"two_thread_speedup", kTwoThreadSpeedup},
+              {"error_vs_full_path", kErrorOverFullPath},
+              {"met",
+               {{"frames_per_s_1_thread", fps >= TargetFps(scene)},
+                {"two_thread_speedup", speedup >= kTwoThreadSpeedup},
+                {"error_vs_full_path", error_ratio <= kErrorOverFullPath}}}};
+}
+
 // One scene: the fast path's stages, its frames per second on one and two threads, and its
 // accuracy beside the full path's.
 Json MeasureScene(const Reconstructor& recon, const Reconstructor& full, const Scene& scene,
@@ -235,6 +260,7 @@ Json MeasureScene(const Reconstructor& recon, const Reconstructor& full, const S
   const Json fast = Accuracy(recon, last, scene, ball_radius, judged);
   const Json reference = Accuracy(full, reference_rec, scene, ball_radius, judged);
   const double fast_mean = fast["mean_error_mm"], full_mean = reference["mean_error_mm"];
+  const double error_ratio = full_mean > 0.0 ? fast_mean / full_mean : 1.0;
   return Json{{"scene", scene.name},
               {"ms",
                {{"detection", 1e3 * t.detection / n},
@@ -247,7 +273,33 @@ Json MeasureScene(const Reconstructor& recon, const Reconstructor& full, const S
               {"two_thread_speedup", two / one},
               {"accuracy", fast},
               {"accuracy_full_path", reference},
-              {"error_vs_full_path", full_mean > 0.0 ? fast_mean / full_mean : 1.0}};
+              {"error_vs_full_path", error_ratio},
+              {"targets", Targets(scene.name, one, two / one, error_ratio)}};
+}
+
+// One line per scene that misses a target, or one saying all are met.
+void PrintTargets(const Json& rows) {
+  int missed = 0;
+  for (const Json& row : rows) {
+    const Json& t = row["targets"];
+    std::string what;
+    if (!t["met"]["frames_per_s_1_thread"].get<bool>()) {
+      what += " " + std::to_string(std::lround(row["frames_per_s_1_thread"].get<double>())) +
+              " f/s (target " +
+              std::to_string(std::lround(t["frames_per_s_1_thread"].get<double>())) + ")";
+    }
+    if (!t["met"]["two_thread_speedup"].get<bool>()) what += " two threads under 1.8x";
+    if (!t["met"]["error_vs_full_path"].get<bool>())
+      what += " error over 5 % above the full path's";
+    if (what.empty()) continue;
+    ++missed;
+    std::printf("target missed: %s:%s\n", row["scene"].get<std::string>().c_str(), what.c_str());
+  }
+  if (missed == 0) {
+    std::printf(
+        "targets: every scene met (1 thread >= 1,000 f/s without contact, 100 with one, "
+        "50 with three; 2 threads >= 1.8x; error within 5 %% of the full path's)\n");
+  }
 }
 
 void PrintRow(const Json& row) {
@@ -323,7 +375,11 @@ int RunBenchRecon(const BenchReconArgs& a, const CommandContext& ctx) {
                     {"image", {recon.map().width(), recon.map().height()}},
                     {"hardware_threads", std::thread::hardware_concurrency()},
                     {"scenes", rows}};
-  if (ctx.json) std::printf("%s\n", result.dump(2).c_str());
+  if (ctx.json) {
+    std::printf("%s\n", result.dump(2).c_str());
+  } else {
+    PrintTargets(rows);
+  }
   return 0;
 }
 
