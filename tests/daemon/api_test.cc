@@ -81,9 +81,9 @@ std::string RawStatus(const std::string& url, const std::string& head, std::size
 
 }  // namespace
 
-TEST_CASE("api: plan, start, pause and resume a run, and two resumes at once get one 409",
+TEST_CASE("api: plan_only answers the plan, its rounds and its advice, and stores nothing",
           "[daemon][api]") {
-  test::RigFixture f("api-run", 60, 0.0);
+  test::RigFixture f("api-plan", 60, 0.0);
   test::InProcessDaemon d(test::ConfigFor(f));
   httplib::Client c = d.Client();
 
@@ -118,6 +118,18 @@ TEST_CASE("api: plan, start, pause and resume a run, and two resumes at once get
   CHECK(Body(r)["error"]["message"].get<std::string>().find("max_view_angle_rad") !=
         std::string::npos);
   CHECK(Body(c.Get("/api/v1/runs"))["runs"].empty());
+}
+
+TEST_CASE("api: plan, start, pause and resume a run, and two resumes at once get one 409",
+          "[daemon][api]") {
+  test::RigFixture f("api-run", 60, 0.0);
+  test::InProcessDaemon d(test::ConfigFor(f));
+  httplib::Client c = d.Client();
+
+  // The plan a run will get, to compare with the run created below.
+  auto r = PostJson(c, "/api/v1/runs", {{"probes", 60}, {"plan_only", true}});
+  REQUIRE(r->status == 200);
+  const Json plan = Body(r);
 
   r = PostJson(c, "/api/v1/runs", {{"name", "api"}, {"probes", 60}});
   REQUIRE(r->status == 201);
