@@ -425,6 +425,9 @@ void Calibration::LoadProbes() {
   const Rigid3d sensor_from_machine = inputs_.machine_from_sensor.Inverse();
   Hasher frames_hash;
   for (const CapturedProbe& cp : db_.ListCapturedProbes(run_id_)) {
+    if (options_.plan_index_limit > 0 && cp.probe.plan_index >= options_.plan_index_limit) {
+      continue;
+    }
     ProbeInfo p;
     p.plan_index = cp.probe.plan_index;
     p.frame_id = cp.frame_id;
@@ -448,8 +451,11 @@ void Calibration::LoadProbes() {
   }
   if (probes_.size() < 20) {
     throw std::runtime_error("calibrate: run " + std::to_string(run_id_) + " has " +
-                             std::to_string(probes_.size()) +
-                             " captured probes; the calibration needs at least 20");
+                             std::to_string(probes_.size()) + " captured probes" +
+                             (options_.plan_index_limit > 0
+                                  ? " below plan index " + std::to_string(options_.plan_index_limit)
+                                  : std::string()) +
+                             "; the calibration needs at least 20");
   }
   keys_["frames"] = frames_hash.Hex();
   Hasher geometry;
@@ -862,6 +868,9 @@ Json Calibration::ValidateProbes() {
                                 {"below_min_contact_pixels", small},
                                 {"min_contact_pixels", options_.dataset.min_contact_pixels}};
   v.report["warnings"] = CalibrationWarnings(v.report, curve_, dataset_.probes.size());
+  if (inputs_.convergence.is_array() && !inputs_.convergence.empty()) {
+    v.report["convergence"] = ConvergencePoints(inputs_.convergence, v.report, probes_.size());
+  }
   ReportInputs ri;
   ri.title = "gs360 calibration: run " + std::to_string(run_id_) + " (" + inputs_.sensor + ")";
   ri.validation = v.report;

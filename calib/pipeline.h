@@ -52,6 +52,10 @@ struct CalibrationInputs {
   // Where the plan left the surface unprobed (plan/coverage.h's CoverageGap::ToJson() array),
   // drawn on the report's error map and kept in validation.json. Not a stage input.
   nlohmann::json coverage_gaps = nlohmann::json::array();
+  // A run that stops once converged: its earlier checkpoints, {"probes", "mean_mm", "band50_mm",
+  // "targets_met"} each, in order. The report draws them with this calibration's own figures as
+  // the last point (validation.json "convergence"). Not a stage input.
+  nlohmann::json convergence = nlohmann::json::array();
 };
 
 struct StageReport {

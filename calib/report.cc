@@ -753,6 +753,96 @@ Json CalibrationWarnings(const Json& validation, const std::vector<TrainEpoch>& 
   return out;
 }
 
+Json ConvergencePoints(const Json& earlier, const Json& validation, std::size_t probes) {
+  Json points = Json::array();
+  if (earlier.is_array()) {
+    for (const Json& p : earlier) {
+      if (p.is_object()) points.push_back(p);
+    }
+  }
+  Json own{{"probes", probes}, {"this", true}, {"mean_mm", nullptr}, {"band50_mm", nullptr}};
+  bool met = true;
+  for (const Json& t : ValidationTargets(validation)) {
+    met = met && t.value("pass", false);
+    const std::string name = t.value("name", std::string());
+    if (name == "mean depth error") own["mean_mm"] = t["value"];
+    if (name == "depth error seen > 50 deg") own["band50_mm"] = t["value"];
+  }
+  own["targets_met"] = met;
+  points.push_back(own);
+  return points;
+}
+
+namespace {
+
+// Validation["convergence"]: mean and > 50 deg errors against probes, the targets drawn in, and
+// a table of the points.
+std::string ConvergenceSection(const Json& validation) {
+  const Json* points = Find(validation, "convergence");
+  if (points == nullptr || !points->is_array() || points->empty()) return {};
+  double max_probes = 1.0, max_error = 0.06;
+  for (const Json& p : *points) {
+    if (!p.is_object()) return {};
+    max_probes = std::max(max_probes, p.value("probes", 0.0));
+    for (const char* key : {"mean_mm", "band50_mm"}) {
+      if (p.contains(key) && p[key].is_number())
+        max_error = std::max(max_error, p[key].get<double>());
+    }
+  }
+  max_error = std::min(max_error * 1.1, 0.5);
+  constexpr double kW = 640, kH = 260, kL = 64, kR = 150, kT = 16, kB = 40;
+  auto px = [&](double n) { return kL + n / max_probes * (kW - kL - kR); };
+  auto py = [&](double v) {
+    return kT + (1.0 - std::min(v, max_error) / max_error) * (kH - kT - kB);
+  };
+  std::ostringstream s;
+  s << "<h2>Error against probes (the run's checkpoints)</h2>\n<svg width=\"" << kW
+    << "\" height=\"" << kH << "\" role=\"img\" font-size=\"11\">\n<rect x=\"" << kL << "\" y=\""
+    << kT << "\" width=\"" << kW - kL - kR << "\" height=\"" << kH - kT - kB
+    << "\" fill=\"none\" stroke=\"#888\"/>\n";
+  const char* const kColours[] = {"#1f77b4", "#d62728"};
+  const char* const kKeys[] = {"mean_mm", "band50_mm"};
+  const char* const kNames[] = {"mean (target 0.030)", "> 50 deg (target 0.050)"};
+  const double kTargets[] = {0.030, 0.050};
+  for (int series = 0; series < 2; ++series) {
+    const double y = py(kTargets[series]);
+    s << "<line x1=\"" << kL << "\" x2=\"" << kW - kR << "\" y1=\"" << y << "\" y2=\"" << y
+      << "\" stroke=\"" << kColours[series] << "\" stroke-dasharray=\"4 3\"/>\n";
+    s << "<polyline fill=\"none\" stroke=\"" << kColours[series]
+      << "\" stroke-width=\"1.5\" points=\"";
+    for (const Json& p : *points) {
+      const Json* v = Find(p, kKeys[series]);
+      if (v != nullptr && v->is_number()) s << px(p.value("probes", 0.0)) << "," << py(*v) << " ";
+    }
+    s << "\"/>\n<line x1=\"" << kW - kR + 10 << "\" x2=\"" << kW - kR + 30 << "\" y1=\""
+      << kT + 10 + 16 * series << "\" y2=\"" << kT + 10 + 16 * series << "\" stroke=\""
+      << kColours[series] << "\" stroke-width=\"2\"/><text x=\"" << kW - kR + 34 << "\" y=\""
+      << kT + 14 + 16 * series << "\">" << kNames[series] << "</text>\n";
+  }
+  for (int k = 0; k <= 4; ++k) {
+    const double v = max_error * k / 4.0;
+    s << "<text x=\"" << kL - 4 << "\" y=\"" << py(v) + 4 << "\" text-anchor=\"end\">"
+      << Fixed(v, 3) << "</text><text x=\"" << px(max_probes * k / 4.0) << "\" y=\"" << kH - kB + 14
+      << "\" text-anchor=\"middle\">" << Fixed(max_probes * k / 4.0, 0) << "</text>\n";
+  }
+  s << "<text x=\"" << (kL + kW - kR) / 2 << "\" y=\"" << kH - 6
+    << "\" text-anchor=\"middle\">probes calibrated on</text>\n<text x=\"12\" y=\""
+    << (kT + kH - kB) / 2 << "\" transform=\"rotate(-90 12 " << (kT + kH - kB) / 2
+    << ")\" text-anchor=\"middle\">held-out depth error (mm)</text>\n</svg>\n";
+  s << "<table><tr><th>probes</th><th>mean mm</th><th>&gt; 50 deg mm</th><th>every target</th>"
+       "</tr>\n";
+  for (const Json& p : *points) {
+    s << "<tr><td class=\"n\">" << Num(Find(p, "probes"), 0)
+      << (p.value("this", false) ? " (this model)" : "") << "</td><td class=\"n\">"
+      << Num(Find(p, "mean_mm"), 4) << "</td><td class=\"n\">" << Num(Find(p, "band50_mm"), 4)
+      << "</td><td>" << (p.value("targets_met", false) ? "met" : "missed") << "</td></tr>\n";
+  }
+  s << "</table>\n";
+  return s.str();
+}
+
+}  // namespace
+
 std::string RenderReportHtml(const ReportInputs& inputs) {
   const std::string title = inputs.title.empty() ? "gs360 calibration report" : inputs.title;
   std::ostringstream s;
@@ -767,6 +857,7 @@ std::string RenderReportHtml(const ReportInputs& inputs) {
   s << StageTable(inputs.stages);
   s << ValidationSection(inputs.validation);
   s << CurveSvg(inputs.curve);
+  s << ConvergenceSection(inputs.validation);
   s << ErrorMapSvg(inputs.probe_errors, inputs.gel_height_mm, inputs.error_map_clamp_mm,
                    inputs.coverage_gaps);
   s << ExamplesSection(inputs.examples);

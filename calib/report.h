@@ -52,6 +52,13 @@ std::string FormatIntrinsics(const nlohmann::json& metrics);
 // false. Never throws.
 nlohmann::json ValidationTargets(const nlohmann::json& validation);
 
+// The error-against-probes curve of a run that stops once converged: the points of `earlier`
+// ({"probes", "mean_mm", "band50_mm", "targets_met"} each) then this validation's own, marked
+// "this": true (`probes`: the probes it calibrated on). The HTML page draws it from
+// validation["convergence"]. Never throws.
+nlohmann::json ConvergencePoints(const nlohmann::json& earlier, const nlohmann::json& validation,
+                                 std::size_t probes);
+
 // Plain warnings about a model that is not good enough, each saying what to do, as an array of
 // {"code", "message"}: "targets" (which ValidationTargets fail, by how much), "few_probes" (a
 // target fails and fewer than kFewProbes probes trained the model), "overfit" (at the best epoch

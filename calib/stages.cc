@@ -101,6 +101,10 @@ void CalibrationOptions::Check() const {
     throw std::invalid_argument("CalibrationOptions.threads must be in [1, 64], got " +
                                 std::to_string(threads));
   }
+  if (plan_index_limit < 0) {
+    throw std::invalid_argument("CalibrationOptions.plan_index_limit must be >= 0, got " +
+                                std::to_string(plan_index_limit));
+  }
   CheckStageName("from_stage", from_stage);
   CheckStageName("to_stage", to_stage);
   CheckStageName("only_stage", only_stage);

@@ -49,6 +49,10 @@ struct CalibrationOptions {
   std::string model_name;            // export: default "run-<id>"
   std::string model_version;         // export: default the train artifact's hash
   std::filesystem::path export_dir;  // where model files go; "" = next to the database
+  // > 0: only the captured probes whose plan index is below it (a run's first rounds, as a run
+  // that stops when it has converged calibrates them); 0: every captured probe. It enters the
+  // cache keys through the frames input.
+  int plan_index_limit = 0;
   int threads = 2;
   template <typename Self, typename Visitor>
   static void Fields(Self& self, Visitor& visit) {
@@ -67,6 +71,7 @@ struct CalibrationOptions {
     visit("model_name", self.model_name);
     visit("model_version", self.model_version);
     visit("export_dir", self.export_dir);
+    visit("plan_index_limit", self.plan_index_limit);
     visit("threads", self.threads);
   }
   void Check() const;  // throws std::invalid_argument naming the field

@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <thread>
 
 #include "base/format.h"
 #include "calib/report.h"
@@ -21,7 +22,9 @@
 #include "cli/sim_args.h"
 #include "cli/sim_bridge.h"
 #include "cli/sim_truth.h"
+#include "daemon/calibration_inputs.h"
 #include "daemon/daemon_config.h"
+#include "daemon/run_engine.h"
 #include "gcode/grbl_client.h"
 #include "sim/virtual_rig.h"
 
@@ -40,6 +43,7 @@ struct DemoOptions {
   std::uint64_t seed = 1;
   int max_epochs = 0;
   bool no_calibrate = false;
+  bool until_converged = false;
   SimArgs sim;
 };
 
@@ -69,10 +73,11 @@ void WriteDaemonConfig(const std::filesystem::path& path, const VirtualSetup& se
 // The validation again, here, against the simulator's physical truth (the daemon is stopped:
 // this process may then open its database). Every stage but validate is cached.
 void ValidateAgainstTruth(const std::filesystem::path& db_path, std::int64_t run_id,
-                          const VirtualRig& rig, int max_epochs) {
+                          const VirtualRig& rig, int max_epochs, int plan_index_limit) {
   RunDatabase db(db_path);
   CalibrationOptions options;
   if (max_epochs > 0) options.train.max_epochs = max_epochs;
+  options.plan_index_limit = plan_index_limit;
   options.export_dir = db_path.parent_path() / "runs" / std::to_string(run_id) / "model";
   const SimValidationTruth truth(rig.rig(), rig.options().camera.gel);
   const CalibrationResult result = RunCalibration(
@@ -81,6 +86,22 @@ void ValidateAgainstTruth(const std::filesystem::path& db_path, std::int64_t run
   std::printf("\nvalidation against the virtual rig's physical truth (held-out probes):\n%s",
               FormatValidationTable(result.validation).c_str());
   std::printf("%s", FormatTargetsAndWarnings(result.validation).c_str());
+}
+
+// The planner's machine time, at the run's feeds, for the probes the run pressed (captured or
+// failed, in plan order; the skipped ones left out): what a run that stopped early cost.
+double PressedMachineSeconds(const std::filesystem::path& db_path, std::int64_t id) {
+  RunDatabaseOptions ro;
+  ro.read_only = true;
+  RunDatabase db(db_path, ro);
+  const ProbePlan plan = RunEngine::LoadPlan(db, id);
+  const RunConfig config = StoredRunConfig(db, id);
+  std::vector<PlannedProbe> pressed;
+  for (const ProbeRecord& p : db.ListProbes(id)) {
+    if (p.state != ProbeState::kSkipped)
+      pressed.push_back(plan.probes.at(static_cast<std::size_t>(p.plan_index)));
+  }
+  return EstimatePlan(pressed, {plan.start_machine}, config.plan).Total();
 }
 
 // With faults: resumes a stopped run as a user would (confirming what it asks about), until it
@@ -128,6 +149,26 @@ bool CalibrateOnDaemon(DaemonClient& client, const std::string& url, std::int64_
   return view["state"] == "done";
 }
 
+// A run that converges calibrates itself: waits for its last checkpoint, prints the curve and
+// that calibration. True when it produced a model; `*plan_index_limit` is its probes' bound.
+bool FollowConvergence(DaemonClient& client, std::int64_t id, int* plan_index_limit) {
+  const std::string path = "/api/v1/runs/" + std::to_string(id);
+  Json run = client.Get(path);
+  while (run["convergence"].is_object() && run["convergence"]["state"] == "calibrating") {
+    std::this_thread::sleep_for(std::chrono::milliseconds(500));
+    run = client.Get(path);
+  }
+  std::printf("\n");
+  PrintConvergence(stdout, run);
+  const Json& list = run["convergence"].is_object()
+                         ? run["convergence"].value("checkpoints", Json::array())
+                         : Json::array();
+  if (list.empty() || !list.back().is_object()) return false;
+  *plan_index_limit = list.back().value("plan_index_limit", 0);
+  std::printf("\nthe model is the last checkpoint's calibration:\n");
+  return WatchCalibration(client, id, stdout)["state"] == "done";
+}
+
 int RunDemo(const DemoOptions& o, RunConfig config) {
   const auto t0 = std::chrono::steady_clock::now();
   const std::filesystem::path dir = std::filesystem::absolute(
@@ -162,6 +203,7 @@ int RunDemo(const DemoOptions& o, RunConfig config) {
                       {"probes", o.probes},
                       {"plan", {{"seed", o.seed}}}};
   if (o.sim.config.empty()) run_request["shape"] = {{"type", o.shape}};
+  if (o.until_converged) run_request["until_converged"] = true;
   const Json created = client.Post("/api/v1/runs", run_request);
   const std::int64_t id = created["id"].get<std::int64_t>();
   std::printf("created run %lld\n", static_cast<long long>(id));
@@ -182,7 +224,10 @@ int RunDemo(const DemoOptions& o, RunConfig config) {
   const CaptureTruth truth = PrintTruthCheck(dir / "gs360.db", rig, id);
   const bool acquired = run["state"] == "done" && truth.off_target == 0 && truth.unverified == 0;
   bool calibrated = o.no_calibrate;
-  if (acquired && !o.no_calibrate) {
+  int plan_index_limit = 0;
+  if (acquired && !o.no_calibrate && o.until_converged) {
+    calibrated = FollowConvergence(client, id, &plan_index_limit);
+  } else if (acquired && !o.no_calibrate) {
     std::printf("\ncalibration on gs360d (%d checkerboard images of the lens):\n", boards);
     calibrated = CalibrateOnDaemon(client, daemon.url(), id, o.max_epochs);
   }
@@ -190,12 +235,19 @@ int RunDemo(const DemoOptions& o, RunConfig config) {
   if (stopped != 0)
     std::printf("gs360d exited with %d (see %s/gs360d.log)\n", stopped, dir.c_str());
   if (acquired && calibrated && !o.no_calibrate) {
-    ValidateAgainstTruth(dir / "gs360.db", id, rig, o.max_epochs);
+    ValidateAgainstTruth(dir / "gs360.db", id, rig, o.max_epochs, plan_index_limit);
   }
   std::printf("demo finished in %s (acquisition %s); data in %s\n",
               FormatDuration(Since(t0)).c_str(), FormatDuration(acquisition_s).c_str(),
               dir.c_str());
-  if (o.time_scale == 0.0) {
+  if (o.until_converged) {
+    std::printf(
+        "on a real rig at [plan.machine]'s feeds the %lld probes pressed take about %s "
+        "(the whole plan %s)\n",
+        static_cast<long long>(run.value("probes_done", 0) + run.value("probes_failed", 0)),
+        FormatDuration(PressedMachineSeconds(dir / "gs360.db", id)).c_str(),
+        FormatDuration(created["plan"].value("estimate_s", 0.0)).c_str());
+  } else if (o.time_scale == 0.0) {
     std::printf("on a real rig at [plan.machine]'s feeds the acquisition would take about %s\n",
                 FormatDuration(created["plan"].value("estimate_s", 0.0)).c_str());
   }
@@ -224,6 +276,9 @@ void RegisterDemoCommand(CLI::App& app, CommandContext& ctx) {
   demo->add_option("--max-epochs", o.max_epochs,
                    "Training epochs at most (default: the trainer's)");
   demo->add_flag("--no-calibrate", o.no_calibrate, "Stop after the acquisition");
+  demo->add_flag("--until-converged", o.until_converged,
+                 "The run calibrates itself after each round of probes and ends once converged "
+                 "(give it a --time-scale: at instant motion the probes outrun the calibrations)");
   AddSimArgs(demo, &o.sim);
   shape->excludes("--config");
   demo->callback([&ctx, demo] {

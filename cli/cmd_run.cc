@@ -22,6 +22,7 @@ struct StartArgs {
   std::string mesh;
   std::int64_t seed = -1;
   bool plan_only = false;
+  bool until_converged = false;
   bool watch = false;
   std::string confirm;
 };
@@ -39,6 +40,7 @@ Json StartRequest(DaemonClient& client, const StartArgs& a) {
   if (a.probes > 0) request["probes"] = a.probes;
   if (a.seed >= 0) request["plan"]["seed"] = a.seed;
   if (a.plan_only) request["plan_only"] = true;
+  if (a.until_converged) request["until_converged"] = true;
   if (!a.mesh.empty()) {
     std::ifstream in(a.mesh, std::ios::binary);
     if (!in) throw ClientError("--mesh: cannot read " + a.mesh, kExitUsage);
@@ -68,6 +70,9 @@ void RegisterStart(CLI::App& run, CommandContext& ctx) {
   start->add_option("--mesh", a.mesh, "Sensor mesh (STL, OBJ, PLY; sensor frame, mm) to upload");
   start->add_option("--seed", a.seed, "Sampling seed");
   start->add_flag("--plan-only", a.plan_only, "Plan and print the estimate; store nothing");
+  start->add_flag("--until-converged", a.until_converged,
+                  "Probe in rounds, calibrate after each in the background, and end the run once "
+                  "the held-out error meets every target and has stopped improving");
   start->add_flag("--watch", a.watch, "Follow the run with a progress bar until it stops");
   start
       ->add_option("--confirm", a.confirm,

@@ -1,6 +1,7 @@
 #include "cli/run_view.h"
 
 #include <chrono>
+#include <cmath>
 #include <string>
 #include <thread>
 
@@ -50,6 +51,40 @@ RunProgress ProgressOf(const Json& run) {
 
 }  // namespace
 
+// One checkpoint of a run that converges: "checkpoint at 750 probes: mean 0.0251 mm, > 50 deg
+// 0.0412 mm, every target met (41 s)".
+std::string CheckpointLine(const Json& c) {
+  std::string line = "checkpoint at " + std::to_string(Count(c, "probes")) + " probes: ";
+  if (Text(c, "state") != "done") return line + "failed: " + Text(c, "error");
+  std::string met = "every target met";
+  if (c.contains("targets") && c["targets"].is_array()) {
+    for (const Json& t : c["targets"]) {
+      if (!t.is_object()) continue;
+      const std::string name = Text(t, "name");
+      const double value = Number(t, "value", std::nan(""));
+      if (name == "mean depth error") line += "mean " + FormatFixed(value, 4) + " mm, ";
+      if (name == "depth error seen > 50 deg")
+        line += "> 50 deg " + FormatFixed(value, 4) + " mm, ";
+      if (!t.value("pass", false))
+        met = (met == "every target met" ? "misses " : met + ", ") + name;
+    }
+  }
+  return line + met + " (" + FormatDuration(Number(c, "seconds", 0.0)) + ")";
+}
+
+void PrintConvergence(std::FILE* out, const Json& run) {
+  if (!run.contains("convergence") || !run["convergence"].is_object()) return;
+  const Json& c = run["convergence"];
+  std::fprintf(out, "  until converged (rounds of %lld probes): %s%s%s\n",
+               Count(c, "checkpoint_probes"), Text(c, "state").c_str(),
+               Text(c, "verdict").empty() ? "" : ": ", Text(c, "verdict").c_str());
+  if (c.contains("checkpoints") && c["checkpoints"].is_array()) {
+    for (const Json& cp : c["checkpoints"]) {
+      if (cp.is_object()) std::fprintf(out, "    %s\n", CheckpointLine(cp).c_str());
+    }
+  }
+}
+
 void PrintRun(std::FILE* out, const Json& run) {
   std::string line = "run " + std::to_string(Count(run, "id")) + " " + Text(run, "name") + "  " +
                      Text(run, "state") + "  " + std::to_string(Count(run, "probes_done")) + "/" +
@@ -69,6 +104,7 @@ void PrintRun(std::FILE* out, const Json& run) {
   if (!Text(run, "last_error").empty()) {
     std::fprintf(out, "  last error: %s\n", Text(run, "last_error").c_str());
   }
+  PrintConvergence(out, run);
   if (!Text(run, "awaiting").empty()) {
     std::fprintf(out,
                  "  waiting for you to confirm its %s: after checking, `gs360 run resume %lld "
@@ -124,7 +160,17 @@ Json WatchRun(DaemonClient& client, std::int64_t run_id, std::FILE* out, std::FI
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
     run = client.Get(path);
   }
+  std::size_t checkpoints = 0;  // of a run that converges: each new one is said as it comes
+  const auto new_checkpoints = [&] {
+    if (!run.contains("convergence") || !run["convergence"].is_object()) return;
+    const Json& list = run["convergence"].value("checkpoints", Json::array());
+    for (; checkpoints < list.size(); ++checkpoints) {
+      if (!list[checkpoints].is_object()) continue;
+      std::fprintf(progress_out, "\n  %s\n", CheckpointLine(list[checkpoints]).c_str());
+    }
+  };
   while (Active(run)) {
+    new_checkpoints();
     printer.Update(ProgressOf(run));
     std::this_thread::sleep_for(std::chrono::milliseconds(500));
     run = client.Get(path);

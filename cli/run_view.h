@@ -13,6 +13,8 @@ namespace gs360::cli {
 
 // "run 3 finger-07  running  812/2011 probes (3 failed, 0 skipped)  elapsed 1h 02m  ETA ..."
 void PrintRun(std::FILE* out, const nlohmann::json& run);
+// A run that converges: its state and verdict, one line per checkpoint. Nothing for another run.
+void PrintConvergence(std::FILE* out, const nlohmann::json& run);
 // The plan summary of a created run or of a plan_only answer.
 void PrintPlan(std::FILE* out, const nlohmann::json& plan);
 // "  not probed: ..." for the five largest of a plan's coverage_gaps (plan/coverage.h's JSON

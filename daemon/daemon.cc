@@ -14,6 +14,7 @@
 #include "base/json_reader.h"
 #include "daemon/calibration_inputs.h"
 #include "daemon/calibration_jobs.h"
+#include "daemon/convergence.h"
 #include "daemon/daemon_util.h"
 #include "geometry/mesh.h"
 
@@ -106,6 +107,8 @@ Daemon::Daemon(DaemonConfig config) : config_(std::move(config)) {
   engine_->SetProgressCallback([this](const RunProgress& p) { OnProgress(p); });
   calibration_ = std::make_unique<CalibrationJobs>(
       config_.data_dir / "runs", config_.DatabasePath(), config_.calibration.threads, hub_);
+  convergence_ = std::make_unique<ConvergenceWatch>(
+      config_.DatabasePath(), config_.calibration.checkerboards, *calibration_, hub_);
   pump_ = std::thread([this] { PumpEvents(); });
 }
 
@@ -133,9 +136,10 @@ void Daemon::Shutdown() {
     if (active_run_ != 0) engine_->RequestStop();
   }
   if (watcher_.joinable()) watcher_.join();
-  calibration_->Stop();
+  // The pump first: its convergence tick may start a calibration.
   pump_wake_.notify_all();
   if (pump_.joinable()) pump_.join();
+  calibration_->Stop();
   hub_.Close();
 }
 
@@ -335,6 +339,8 @@ std::optional<Json> Daemon::GetRun(std::int64_t run_id) const {
   }
   const auto calibration = calibration_->State(run_id);
   view["calibration"] = calibration ? Json(*calibration) : Json(nullptr);
+  const auto convergence = convergence_->View(db, run_id);
+  view["convergence"] = convergence ? *convergence : Json(nullptr);
   return view;
 }
 

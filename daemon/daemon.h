@@ -54,6 +54,7 @@ struct ActionResult {
 enum class RunFile { kModel, kOnnx, kReport, kValidation };
 
 class CalibrationJobs;
+class ConvergenceWatch;
 
 class Daemon {
  public:
@@ -124,6 +125,8 @@ class Daemon {
   ActionResult Launch(std::int64_t run_id, bool resume, const std::string& confirm);
   void WatchSession(std::int64_t run_id);
   void PumpEvents();
+  // A run that converges (daemon/convergence.h): its checkpoints, and its end once converged.
+  void ConvergenceTick();
   void OnProgress(const RunProgress& progress);
   nlohmann::json RunView(const RunRecord& run, const ProbeCounts& counts) const;
   std::filesystem::path RunDir(std::int64_t run_id) const;
@@ -141,6 +144,7 @@ class Daemon {
   double started_at_ = 0.0;
   EventHub hub_;
   std::unique_ptr<CalibrationJobs> calibration_;
+  std::unique_ptr<ConvergenceWatch> convergence_;
 
   mutable std::mutex mutex_;  // guards the fields below
   std::unique_ptr<RunEngine> engine_;

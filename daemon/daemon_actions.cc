@@ -11,6 +11,7 @@
 #include "base/json_reader.h"
 #include "daemon/calibration_inputs.h"
 #include "daemon/calibration_jobs.h"
+#include "daemon/convergence.h"
 #include "daemon/daemon.h"
 #include "daemon/daemon_util.h"
 #include "geometry/mesh.h"
@@ -43,8 +44,14 @@ void ReadRunRequest(JsonReader& r, RunConfig& config, std::string* mesh_id, bool
     config.plan.probe_count = probes->get<int>();
   }
   r.Object("plan", [&](JsonReader& o) { ReadPlanOptions(o, config.plan); });
+  r.Get("until_converged", config.converge.enabled);
+  r.Object("converge", [&](JsonReader& o) { ReadConvergeConfig(o, config.converge); });
   r.Get("plan_only", *plan_only);
   r.RejectUnknown();
+  // A run that converges is probed in rounds, each covering the surface.
+  if (config.converge.enabled && config.plan.checkpoint_probes == 0) {
+    config.plan.checkpoint_probes = kDefaultConvergeRound;
+  }
 }
 
 // The request's field named by a Check() message ("PlanOptions.press_depth must be ...").
@@ -75,6 +82,12 @@ Json PlanSummary(const ProbePlan& plan) {
       {"checkpoint_probes", plan.checkpoint_probes}};
 }
 
+Json PlanSummary(const ProbePlan& plan, const RunConfig& config) {
+  Json summary = PlanSummary(plan);
+  summary["until_converged"] = config.converge.enabled;
+  return summary;
+}
+
 }  // namespace
 
 Json Daemon::CreateRun(const Json& request, bool* created) {
@@ -103,7 +116,7 @@ Json Daemon::CreateRun(const Json& request, bool* created) {
   }
   const ProbePlan plan = RunEngine::PlanRun(checked, &config_.limits);
   *created = !plan_only;
-  if (plan_only) return PlanSummary(plan);
+  if (plan_only) return PlanSummary(plan, config);
   std::int64_t run_id = 0;
   {
     std::lock_guard lock(mutex_);
@@ -112,7 +125,7 @@ Json Daemon::CreateRun(const Json& request, bool* created) {
   spdlog::info("created run {} ({}, {} probes)", run_id, config.name, plan.probes.size());
   hub_.Publish("state", {{"run", run_id}, {"state", "created"}});
   Json view = *GetRun(run_id);
-  view["plan"] = PlanSummary(plan);
+  view["plan"] = PlanSummary(plan, config);
   return view;
 }
 
@@ -150,7 +163,10 @@ ActionResult Daemon::Launch(std::int64_t run_id, bool resume, const std::string&
                                          "interrupted one)"),
                     run->state);
   }
-  if (calibration_->Running() == run_id) return Conflict("run is being calibrated", run->state);
+  // A checkpoint calibration (daemon/convergence.h) reads only the probes already captured.
+  if (calibration_->Running() == run_id && !convergence_->Calibrating(run_id)) {
+    return Conflict("run is being calibrated", run->state);
+  }
   if (!confirm.empty() && !run->awaiting.empty() && confirm != run->awaiting) {
     return Conflict("the run waits for its " + run->awaiting + " to be confirmed, not its " +
                         confirm + ": " + run->last_error,
@@ -340,6 +356,23 @@ void Daemon::OnProgress(const RunProgress& p) {
   hub_.Publish("progress", std::move(data));
 }
 
+void Daemon::ConvergenceTick() {
+  std::int64_t active = 0;
+  RunProgress progress;
+  {
+    std::lock_guard lock(mutex_);
+    active = active_run_;
+    progress = progress_;
+  }
+  const auto action = convergence_->Tick(active, progress);
+  if (action.finish_run == 0) return;
+  std::lock_guard lock(mutex_);
+  if (active_run_ == action.finish_run) {
+    spdlog::info("run {}: {}; ending the run", action.finish_run, action.reason);
+    engine_->RequestFinish("converged");
+  }
+}
+
 void Daemon::PumpEvents() {
   // The run log in the database is the record; the hub forwards its new entries live. Start at
   // the current end: older entries are history (GET /runs/ID/log).
@@ -381,6 +414,11 @@ void Daemon::PumpEvents() {
       spdlog::warn("event pump: {}", e.what());
     }
     FollowPortLock();
+    try {
+      ConvergenceTick();
+    } catch (const std::exception& e) {
+      spdlog::warn("convergence: {}", e.what());
+    }
     std::unique_lock lock(pump_mutex_);
     pump_wake_.wait_for(lock, std::chrono::milliseconds(200), [&] { return stopping_.load(); });
   }

@@ -143,12 +143,19 @@ void EngineConfig::Check() const {
   }
 }
 
+void ConvergeConfig::Check() const {
+  if (!(min_improvement >= 0.0 && min_improvement < 1.0)) {
+    Invalid("converge.min_improvement", std::to_string(min_improvement), "must be in [0, 1)");
+  }
+}
+
 void RunConfig::Check() const {
   rig.Check();
   plan.Check();
   machine.Check();
   camera.Check();
   engine.Check();
+  converge.Check();
   if (!(plan.press_depth < rig.gel_thickness)) {
     Invalid("plan.press_depth", std::to_string(plan.press_depth),
             "must be less than rig.gel_thickness (" + std::to_string(rig.gel_thickness) + ")");
@@ -197,7 +204,14 @@ nlohmann::json RunConfigToJson(const RunConfig& c) {
         {"impression_min_contrast", c.engine.impression_min_contrast},
         {"impression_radius_px", c.engine.impression_radius_px},
         {"unverified_resume", c.engine.unverified_resume}}},
+      {"converge",
+       {{"enabled", c.converge.enabled}, {"min_improvement", c.converge.min_improvement}}},
   };
+}
+
+void ReadConvergeConfig(JsonReader& r, ConvergeConfig& c) {
+  r.Get("enabled", c.enabled);
+  r.Get("min_improvement", c.min_improvement);
 }
 
 void ReadRunConfig(JsonReader& r, RunConfig& c) {
@@ -248,6 +262,7 @@ void ReadRunConfig(JsonReader& r, RunConfig& c) {
     o.Get("impression_radius_px", c.engine.impression_radius_px);
     o.Get("unverified_resume", c.engine.unverified_resume);
   });
+  r.Object("converge", [&](JsonReader& o) { ReadConvergeConfig(o, c.converge); });
 }
 
 RunConfig RunConfigFromJson(const nlohmann::json& json, const std::string& where) {

@@ -58,6 +58,21 @@ struct EngineConfig {
   void Check() const;
 };
 
+// Stopping a run once it has learnt enough (docs/running.md, "Until converged"): at the end of
+// each round of plan.checkpoint_probes probes the daemon calibrates on what is captured, in the
+// background; the run ends when the held-out error meets every target at two checkpoints in a
+// row and the last one improved on the one before by less than min_improvement.
+struct ConvergeConfig {
+  bool enabled = false;
+  // Relative improvement of the mean and of the > 50 deg band error (the larger counts) below
+  // which the error has stopped improving.
+  double min_improvement = 0.1;
+  void Check() const;
+};
+
+// The round size of a run that converges when its plan sets none (plan.checkpoint_probes).
+inline constexpr int kDefaultConvergeRound = 250;
+
 struct RunConfig {
   std::string name;
   RigConfig rig;
@@ -65,6 +80,7 @@ struct RunConfig {
   MachineConfig machine;
   CameraConfig camera;
   EngineConfig engine;
+  ConvergeConfig converge;
   // Throws std::invalid_argument naming the field and value.
   void Check() const;
 };
@@ -72,7 +88,10 @@ struct RunConfig {
 class JsonReader;
 
 nlohmann::json RunConfigToJson(const RunConfig& config);
-// Reads the sections present (name, rig, plan, machine, camera, engine) into `config`; absent
+// The "converge" object of a request or a configuration ({enabled, min_improvement}).
+void ReadConvergeConfig(JsonReader& reader, ConvergeConfig& converge);
+// Reads the sections present (name, rig, plan, machine, camera, engine, converge) into `config`;
+// absent
 // keys keep its values; no Check(). For larger documents (the daemon's configuration).
 void ReadRunConfig(JsonReader& reader, RunConfig& config);
 // The plan options a user may set (docs/running.md), read into `plan`. With `machine`, also the

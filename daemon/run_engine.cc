@@ -398,29 +398,10 @@ RunReport RunSession::Run() {
   db_.SetRunState(run_id_, RunState::kRunning);
   Event(EventLevel::kInfo, std::string(resuming ? "resumed" : "started") + ": " +
                                std::to_string(db_.CountProbes(run_id_).planned) + " probes to go");
-
-  auto finish = [&](RunOutcome outcome, RunState state, const std::string& message) {
-    committer_.Wait();
-    report_.outcome = outcome;
-    report_.message = message;
-    SettleAndRecord();
-    db_.SetRunState(run_id_, state);
-    if (outcome == RunOutcome::kFailed) {
-      spdlog::error("run {}: {}", run_id_, message);
-      db_.SetRunError(run_id_, message);
-    } else {
-      Event(EventLevel::kInfo, message);
-    }
-    report_.counts = db_.CountProbes(run_id_);
-    report_.seconds = std::chrono::duration<double>(Clock::now() - session_start_).count();
-    Publish("idle");
-    return report_;
-  };
-
   if (resuming && config_.engine.recheck_probes > 0) {
     if (auto problem = RecheckSensor()) {
       if (problem->what.empty()) {
-        return finish(RunOutcome::kFailed, RunState::kInterrupted, problem->message);
+        return Finish(RunOutcome::kFailed, RunState::kInterrupted, problem->message);
       }
       return Awaiting(*problem);
     }
@@ -429,22 +410,58 @@ RunReport RunSession::Run() {
   // mid-run) is asked again.
   overrides_.confirm.clear();
   last_reference_at_.reset();  // every session starts with a fresh reference frame
+  return ProbeLoop();
+}
 
-  for (;;) {
-    switch (engine_.request_.load()) {
-      case 1:
-        return finish(RunOutcome::kStopped, RunState::kInterrupted, "stopped on request");
-      case 2:
-        return finish(RunOutcome::kPaused, RunState::kPaused, "paused");
-      case 3:
-        Park();
-        return finish(RunOutcome::kCancelled, RunState::kCancelled,
-                      "cancelled; the captured probes are kept");
-      default:
-        break;
+RunReport RunSession::Finish(RunOutcome outcome, RunState state, const std::string& message) {
+  committer_.Wait();
+  report_.outcome = outcome;
+  report_.message = message;
+  SettleAndRecord();
+  db_.SetRunState(run_id_, state);
+  if (outcome == RunOutcome::kFailed) {
+    spdlog::error("run {}: {}", run_id_, message);
+    db_.SetRunError(run_id_, message);
+  } else {
+    Event(EventLevel::kInfo, message);
+  }
+  report_.counts = db_.CountProbes(run_id_);
+  report_.seconds = std::chrono::duration<double>(Clock::now() - session_start_).count();
+  Publish("idle");
+  return report_;
+}
+
+std::optional<RunReport> RunSession::OnRequest() {
+  switch (engine_.request_.load()) {
+    case 1:
+      return Finish(RunOutcome::kStopped, RunState::kInterrupted, "stopped on request");
+    case 2:
+      return Finish(RunOutcome::kPaused, RunState::kPaused, "paused");
+    case 3:
+      Park();
+      return Finish(RunOutcome::kCancelled, RunState::kCancelled,
+                    "cancelled; the captured probes are kept");
+    case 4: {
+      // Ends the run early (it has converged): what is left of the plan is skipped, not lost.
+      committer_.Wait();
+      const std::string why = engine_.FinishReason();
+      const std::int64_t skipped = db_.SkipOpenProbes(run_id_, why);
+      Park();
+      const ProbeCounts counts = db_.CountProbes(run_id_);
+      return Finish(RunOutcome::kDone, RunState::kDone,
+                    "done early (" + why + "): " + std::to_string(counts.captured) + " captured, " +
+                        std::to_string(skipped) + " planned probes skipped");
     }
+    default:
+      return std::nullopt;
+  }
+}
+
+RunReport RunSession::ProbeLoop() {
+  for (;;) {
+    if (auto report = OnRequest()) return *report;
     if (safety_stop_) {
-      return finish(RunOutcome::kFailed, RunState::kInterrupted,
+      return Finish(RunOutcome::kFailed, RunState::kInterrupted,
                     "safety limit: " + *safety_stop_ + ". Nothing of that line was sent.");
     }
     const auto probe =
@@ -452,7 +469,7 @@ RunReport RunSession::Run() {
     if (!probe) break;
     const PlannedProbe& planned = plan_.probes.at(static_cast<std::size_t>(probe->plan_index));
     if ((planned.press_machine - probe->plan.press_machine).norm() > 1e-6) {
-      return finish(
+      return Finish(
           RunOutcome::kFailed, RunState::kInterrupted,
           "stored plan and probe rows disagree at plan index " + std::to_string(probe->plan_index));
     }
@@ -461,64 +478,69 @@ RunReport RunSession::Run() {
     const bool take_reference = references_.NeedsReference(probes_done_, last_reference_at_);
     Press press;
     const Step step = PressProbe(planned, take_reference, &press);
-    switch (step.kind) {
-      case StepKind::kOk: {
-        CaptureReport report;
-        report.machine_position = press.mpos;
-        report.sync_time = ToUnix(press.sync);
-        report.frame_time = ToUnix(press.frame_time);
-        committer_.Submit(probe->id, press.frame, report);
-        ++report_.captured;
-        ++probes_done_;
-        const double dt = std::chrono::duration<double>(Clock::now() - t0).count();
-        recent_probe_s_ = recent_probe_s_ > 0.0 ? 0.9 * recent_probe_s_ + 0.1 * dt : dt;
-        break;
-      }
-      case StepKind::kProbeError:
-        db_.MarkProbeFailed(probe->id, step.message);
-        ++report_.failed;
-        Event(EventLevel::kWarning,
-              "probe " + std::to_string(probe->plan_index) + " failed: " + step.message);
-        ReturnToSafety(planned);
-        break;
-      case StepKind::kAlarm:
-        db_.MarkProbeFailed(probe->id, step.message);
-        ++report_.failed;
-        return finish(RunOutcome::kFailed, RunState::kInterrupted,
-                      "the machine raised an alarm at probe " + std::to_string(probe->plan_index) +
-                          ": " + step.message +
-                          ". Nothing moves until you check the machine; `resume` re-homes and "
-                          "continues.");
-      case StepKind::kSafety:
-        return finish(RunOutcome::kFailed, RunState::kInterrupted,
-                      "safety limit: " + step.message + ". Nothing of that line was sent.");
-      case StepKind::kHeld:
-        // Perhaps a person at the machine: nothing more moves until a user says so.
-        return finish(RunOutcome::kFailed, RunState::kInterrupted,
-                      step.message +
-                          ". Nothing more was sent. Check the machine; `resume` "
-                          "ends the hold with a soft reset (a hold keeps the position) "
-                          "and continues.");
-      case StepKind::kReset:
-      case StepKind::kDisconnected:
-      case StepKind::kStall:
-        // Not the probe's fault: it stays pending and is probed again after recovery.
-        if (!Recover(step)) {
-          if (ask_) return Awaiting(*ask_);
-          return finish(
-              RunOutcome::kFailed, RunState::kInterrupted,
-              "could not recover from: " + step.message + ". Resume when the machine is back.");
-        }
-        break;
-    }
+    if (auto report = AfterPress(step, *probe, planned, press, t0)) return *report;
   }
   committer_.Wait();
   Park();
   const ProbeCounts counts = db_.CountProbes(run_id_);
-  return finish(RunOutcome::kDone, RunState::kDone,
+  return Finish(RunOutcome::kDone, RunState::kDone,
                 "done: " + std::to_string(counts.captured) + " captured, " +
                     std::to_string(counts.failed) + " failed, " + std::to_string(counts.skipped) +
                     " skipped");
+}
+
+std::optional<RunReport> RunSession::AfterPress(const Step& step, const ProbeRecord& probe,
+                                                const PlannedProbe& planned, const Press& press,
+                                                Clock::time_point t0) {
+  switch (step.kind) {
+    case StepKind::kOk: {
+      CaptureReport report;
+      report.machine_position = press.mpos;
+      report.sync_time = ToUnix(press.sync);
+      report.frame_time = ToUnix(press.frame_time);
+      committer_.Submit(probe.id, press.frame, report);
+      ++report_.captured;
+      ++probes_done_;
+      const double dt = std::chrono::duration<double>(Clock::now() - t0).count();
+      recent_probe_s_ = recent_probe_s_ > 0.0 ? 0.9 * recent_probe_s_ + 0.1 * dt : dt;
+      return std::nullopt;
+    }
+    case StepKind::kProbeError:
+      db_.MarkProbeFailed(probe.id, step.message);
+      ++report_.failed;
+      Event(EventLevel::kWarning,
+            "probe " + std::to_string(probe.plan_index) + " failed: " + step.message);
+      ReturnToSafety(planned);
+      return std::nullopt;
+    case StepKind::kAlarm:
+      db_.MarkProbeFailed(probe.id, step.message);
+      ++report_.failed;
+      return Finish(RunOutcome::kFailed, RunState::kInterrupted,
+                    "the machine raised an alarm at probe " + std::to_string(probe.plan_index) +
+                        ": " + step.message +
+                        ". Nothing moves until you check the machine; `resume` re-homes and "
+                        "continues.");
+    case StepKind::kSafety:
+      return Finish(RunOutcome::kFailed, RunState::kInterrupted,
+                    "safety limit: " + step.message + ". Nothing of that line was sent.");
+    case StepKind::kHeld:
+      // Perhaps a person at the machine: nothing more moves until a user says so.
+      return Finish(RunOutcome::kFailed, RunState::kInterrupted,
+                    step.message +
+                        ". Nothing more was sent. Check the machine; `resume` "
+                        "ends the hold with a soft reset (a hold keeps the position) "
+                        "and continues.");
+    case StepKind::kReset:
+    case StepKind::kDisconnected:
+    case StepKind::kStall:
+      // Not the probe's fault: it stays pending and is probed again after recovery.
+      if (Recover(step)) return std::nullopt;
+      if (ask_) return Awaiting(*ask_);
+      return Finish(
+          RunOutcome::kFailed, RunState::kInterrupted,
+          "could not recover from: " + step.message + ". Resume when the machine is back.");
+  }
+  return std::nullopt;
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -658,6 +680,17 @@ void RunEngine::RequestPause() {
 }
 void RunEngine::RequestCancel() {
   request_.store(3);
+}
+void RunEngine::RequestFinish(const std::string& reason) {
+  {
+    std::lock_guard lock(progress_mutex_);
+    finish_reason_ = reason;
+  }
+  request_.store(4);
+}
+std::string RunEngine::FinishReason() const {
+  std::lock_guard lock(progress_mutex_);
+  return finish_reason_;
 }
 
 void RunEngine::SetProgressCallback(ProgressCallback callback) {

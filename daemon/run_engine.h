@@ -19,9 +19,10 @@
 //   continue (at most engine.max_recoveries times per session);
 // - an alarm (limit, abort): the machine is left alone, the run becomes `interrupted` with the
 //   alarm's text; Execute() returns kFailed;
-// - RequestStop() (SIGTERM), RequestPause(), RequestCancel(): the current probe is finished,
-//   retracted and committed first; the run becomes interrupted / paused / cancelled (a cancelled
-//   run also parks the tool at the plan's start position);
+// - RequestStop() (SIGTERM), RequestPause(), RequestCancel(), RequestFinish(): the current probe
+//   is finished, retracted and committed first; the run becomes interrupted / paused / cancelled
+//   / done (a cancelled or finished run also parks the tool at the plan's start position; a
+//   finished one skips what is left of its plan);
 // - a line that breaks the safety limits (SetSafetyLimits, daemon/safety.h): it is not sent, the
 //   run stops (interrupted, kFailed) naming the line and the limit.
 // Nothing committed is ever lost or probed again. On resume, Execute() first re-presses up to
@@ -142,6 +143,9 @@ class RunEngine {
   void RequestStop();    // finish the current probe, retract, commit, return (resumable)
   void RequestPause();   // the same, state paused
   void RequestCancel();  // the same, state cancelled (terminal)
+  // The same, then every probe not captured is skipped with `reason` (the run has converged),
+  // the tool parked, and the run is done.
+  void RequestFinish(const std::string& reason);
 
   void SetProgressCallback(ProgressCallback callback);
   RunProgress Progress() const;
@@ -160,8 +164,10 @@ class RunEngine {
   std::atomic<bool> running_{false};
   RunReport thread_report_;
   std::exception_ptr thread_error_;
-  std::atomic<int> request_{0};  // 0 none, 1 stop, 2 pause, 3 cancel
-  mutable std::mutex progress_mutex_;
+  std::atomic<int> request_{0};  // 0 none, 1 stop, 2 pause, 3 cancel, 4 finish
+  std::string FinishReason() const;
+  mutable std::mutex progress_mutex_;  // also guards finish_reason_
+  std::string finish_reason_;
   RunProgress progress_;
   ProgressCallback callback_;
 };

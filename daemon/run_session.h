@@ -127,6 +127,18 @@ class RunSession {
   RunReport Run();
 
  private:
+  // The probing loop, after the set-up and the resume check.
+  RunReport ProbeLoop();
+  // A stop, pause, cancel or finish the engine was asked for: the session's report; nullopt:
+  // none.
+  std::optional<RunReport> OnRequest();
+  // What a press's outcome does: commit, fail the probe, recover, or end the session (the
+  // report).
+  std::optional<RunReport> AfterPress(const Step& step, const ProbeRecord& probe,
+                                      const PlannedProbe& planned, const Press& press,
+                                      Clock::time_point t0);
+  // Ends the session: waits for the commits, records where the tool is, sets the run's state.
+  RunReport Finish(RunOutcome outcome, RunState state, const std::string& message);
   // Set-up.
   void LoadRun();
   void ConnectMachine();

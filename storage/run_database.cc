@@ -756,6 +756,20 @@ void RunDatabase::MarkProbeSkipped(std::int64_t probe_id, std::string_view reaso
   tx.Commit();
 }
 
+std::int64_t RunDatabase::SkipOpenProbes(std::int64_t run_id, std::string_view reason) {
+  const Impl& c = *impl_;
+  Transaction tx(c, Transaction::kWrite);
+  c.RequireRun(run_id);
+  Stmt s = c.Prepare(
+      "UPDATE probes SET state = 'skipped', skip_reason = ? WHERE run_id = ? AND state IN "
+      "('planned', 'failed')");
+  s.Text(1, reason).Int(2, run_id).Run();
+  const std::int64_t changed = c.Changes();
+  c.TouchRun(run_id, c.Now());
+  tx.Commit();
+  return changed;
+}
+
 // ---- frames ----
 
 std::int64_t RunDatabase::AddReferenceFrame(std::int64_t run_id, const EncodedFrame& frame,

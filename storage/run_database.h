@@ -293,6 +293,9 @@ class RunDatabase {
   void MarkProbeFailed(std::int64_t probe_id, std::string_view error);
   // Deliberately not probed: state skipped with the reason. Probe must not be captured.
   void MarkProbeSkipped(std::int64_t probe_id, std::string_view reason);
+  // Every probe of the run not captured (planned or failed) skipped with `reason`, in one
+  // transaction; returns how many. For a run that ends before its plan (it has converged).
+  std::int64_t SkipOpenProbes(std::int64_t run_id, std::string_view reason);
 
   // ---- frames ----
   // A no-contact reference frame (kind reference, no probe). Returns the frame id.

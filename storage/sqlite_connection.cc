@@ -179,6 +179,10 @@ std::int64_t Connection::LastInsertId() const {
   return sqlite3_last_insert_rowid(db_);
 }
 
+std::int64_t Connection::Changes() const {
+  return sqlite3_changes(db_);
+}
+
 bool Connection::InTransaction() const {
   return sqlite3_get_autocommit(db_) == 0;
 }

@@ -94,6 +94,7 @@ class Connection {
   Stmt Prepare(std::string_view sql) const;
   std::int64_t ScalarInt(std::string_view sql) const;
   std::int64_t LastInsertId() const;
+  std::int64_t Changes() const;  // rows changed by the latest statement
   bool InTransaction() const;
   void RollbackNoThrow() const noexcept;  // for destructors: errors are ignored
 

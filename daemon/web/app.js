@@ -575,7 +575,37 @@
     if (r.shape) times.push(`shape ${r.shape}`);
     if (Number.isFinite(r.candidates)) times.push(`${r.candidates} candidates`);
     setText('run-times', times.join(' · '));
+    renderConvergence(r.convergence);
     renderActions();
+  }
+
+  // A run that converges: its state, the verdict and one row per checkpoint.
+  function renderConvergence(c) {
+    show('convergence', !!c);
+    if (!c) return;
+    setText('convergence-state', c.state.replace('_', ' '));
+    $('convergence-state').dataset.state = c.state;
+    setText('convergence-verdict', c.verdict ||
+      `Calibrates after each round of ${c.checkpoint_probes} probes.`);
+    const body = $('checkpoints').querySelector('tbody');
+    body.replaceChildren();
+    for (const cp of c.checkpoints || []) {
+      const figure = (name) => {
+        const t = (cp.targets || []).find((x) => x.name === name);
+        return t && Number.isFinite(t.value) ? t.value.toFixed(4) : '–';
+      };
+      const cells = [String(cp.probes), figure('mean depth error'),
+        figure('depth error seen > 50 deg'),
+        cp.state !== 'done' ? `failed: ${cp.error}` : cp.targets_met ? 'all met' : 'missed',
+        fmtSeconds(cp.seconds)];
+      const tr = document.createElement('tr');
+      for (const text of cells) {
+        const td = document.createElement('td');
+        td.textContent = text;
+        tr.append(td);
+      }
+      body.append(tr);
+    }
   }
 
   function renderProgress(r) {
@@ -1300,6 +1330,9 @@
       if (state.selected === d.run) refreshCalibration();
     }));
     es.addEventListener('calibration', parse(onCalibration));
+    es.addEventListener('convergence', parse((d) => {
+      if (state.selected === d.run) refreshRun();
+    }));
     for (const type of ['alarm', 'failure', 'warning', 'log']) {
       es.addEventListener(type, parse(onLog));
     }

@@ -68,9 +68,11 @@ TEST_CASE("calibration stages: changing any option changes exactly its readers' 
           "[calib][stages]") {
   const CalibrationOptions base;
   const auto base_keys = CalibrationStageKeys(base, External());
-  // Fields no stage's result depends on: the stage selection, and where the files go (an input
-  // of export by its resolved directory, external key export_dir).
-  const std::set<std::string> no_result = {"from_stage", "to_stage", "only_stage", "export_dir"};
+  // Fields no stage's result depends on: the stage selection, where the files go (an input
+  // of export by its resolved directory, external key export_dir), and the probe selection (an
+  // input of every stage through the frames key).
+  const std::set<std::string> no_result = {"from_stage", "to_stage", "only_stage", "export_dir",
+                                           "plan_index_limit"};
   int fields = 0;
   for (const auto& [leaf, options] : EachFieldChanged(base)) {
     ++fields;

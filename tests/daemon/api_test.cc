@@ -16,6 +16,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "api_helpers.h"
 #include "daemon_fixture.h"
 #include "geometry/mesh.h"
 #include "geometry/shapes.h"
@@ -24,34 +25,12 @@
 
 using namespace gs360;
 using Json = nlohmann::json;
+using test::Body;
+using test::kNone;
+using test::PostJson;
+using test::WaitRun;
 
 namespace {
-
-const httplib::Headers kNone;
-
-Json Body(const httplib::Result& r) {
-  REQUIRE(r);
-  return Json::parse(r->body, nullptr, false);
-}
-
-httplib::Result PostJson(httplib::Client& c, const std::string& path, const Json& body,
-                         const httplib::Headers& headers = kNone) {
-  return c.Post(path.c_str(), headers, body.dump(), "application/json");
-}
-
-// Polls GET /runs/ID until `pred` holds (or 60 s pass); returns the last view.
-template <typename Pred>
-Json WaitRun(httplib::Client& c, std::int64_t id, Pred pred) {
-  Json run;
-  const auto done = [&] {
-    run = Body(c.Get(("/api/v1/runs/" + std::to_string(id)).c_str()));
-    return pred(run);
-  };
-  if (!test::WaitUntil(done, std::chrono::seconds(60))) {
-    FAIL("timed out waiting; last view " << run.dump());
-  }
-  return run;
-}
 
 // Sends an HTTP request head on a raw socket, then up to `body_bytes` of body (as a client
 // streaming a large upload would before the server answers), and returns the status line.

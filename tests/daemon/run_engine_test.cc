@@ -90,6 +90,34 @@ TEST_CASE("stop, pause and cancel finish the current probe and leave the run con
   CHECK(db.GetRun(run_id)->state == RunState::kCancelled);
 }
 
+TEST_CASE("a finish request ends the run done and skips what is left of the plan",
+          "[daemon][run]") {
+  RigFixture f("finish", 40, 0.0);
+  RunEngine engine(f.db);
+  ProbePlan plan;
+  const auto run_id = engine.CreateRun(f.config, &plan);
+  REQUIRE(plan.probes.size() >= 20);
+  AtProbe(engine, 6, [&] { engine.RequestFinish("converged"); });
+  const RunReport report = engine.Execute(run_id);
+  CHECK(report.outcome == RunOutcome::kDone);
+  CHECK(report.message.find("converged") != std::string::npos);
+  CHECK(report.counts.captured >= 6);
+  CHECK(report.counts.captured < static_cast<std::int64_t>(plan.probes.size()));
+  // Nothing is pending: every probe is captured or skipped, none lost.
+  CHECK(report.counts.planned == 0);
+  CHECK(report.counts.failed == 0);
+  CHECK(report.counts.captured + report.counts.skipped ==
+        static_cast<std::int64_t>(plan.probes.size()));
+  CheckCommitted(f, run_id);
+  RunDatabase db(f.db);
+  CHECK(db.GetRun(run_id)->state == RunState::kDone);
+  for (const ProbeRecord& p : db.ListProbes(run_id)) {
+    if (p.state == ProbeState::kSkipped) CHECK(p.skip_reason == "converged");
+  }
+  // Parked at the plan's start, as a finished run is.
+  CHECK((f.rig->cnc().ReportedPosition() - plan.start_machine).norm() < 0.01);
+}
+
 TEST_CASE("resume refuses to continue when the sensor moved", "[daemon][run]") {
   RigFixture f("moved", 40, 0.0);
   RunEngine engine(f.db);

@@ -258,6 +258,22 @@ TEST_CASE("failed and skipped probes, and the order a resume follows", "[storage
   CHECK(db.NextPendingProbe(run, 3)->plan_index == 4);
   CHECK_FALSE(db.NextPendingProbe(run, 2));
   CHECK(db.ListCapturedProbes(run).size() == 4);
+
+  // A run ending early skips what is open (planned or failed), never a captured probe.
+  const std::int64_t other = db.CreateRun("{}", "h");
+  const std::vector<std::int64_t> more = db.InsertPlan(other, MakePlan(5));
+  db.CommitCapture(more[0], image, Report(5));
+  db.MarkProbeFailed(more[1], "camera timeout");
+  db.MarkProbeSkipped(more[2], "unreachable");
+  CHECK(db.SkipOpenProbes(other, "converged") == 3);
+  CHECK(db.GetProbe(more[0])->state == ProbeState::kCaptured);
+  CHECK(db.GetProbe(more[1])->skip_reason == "converged");
+  CHECK(db.GetProbe(more[2])->skip_reason == "unreachable");
+  CHECK(db.GetProbe(more[4])->state == ProbeState::kSkipped);
+  CHECK_FALSE(db.NextPendingProbe(other, 9));
+  CHECK(db.SkipOpenProbes(other, "converged") == 0);
+  CHECK(db.CountProbes(run).captured == 4);  // the other run is untouched
+  CHECK_THROWS_AS(db.SkipOpenProbes(999, "converged"), StorageError);
 }
 
 TEST_CASE("run states, elapsed time and the run log", "[storage][db]") {
