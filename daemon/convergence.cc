@@ -256,21 +256,22 @@ void ConvergenceWatch::RecordPending(RunDatabase& db) {
 ConvergenceWatch::Action ConvergenceWatch::Tick(std::int64_t active_run,
                                                 const RunProgress& progress) {
   std::lock_guard lock(mutex_);
-  if (active_run != 0 && active_run != run_id_ && active_run != ignored_) {
-    Track(active_run);
-    ignored_ = run_id_ == 0 ? active_run : 0;
-  }
-  if (run_id_ == 0) return {};
   // Opened only when there is something to read or write: most ticks have nothing to do.
   std::unique_ptr<RunDatabase> open;
   const auto db = [&]() -> RunDatabase& {
     if (!open) open = std::make_unique<RunDatabase>(database_);
     return *open;
   };
+  // A checkpoint is recorded before anything else, even when another run has started since.
   if (pending_ != 0) {
     if (jobs_.Running() == run_id_) return {};
     RecordPending(db());
   }
+  if (active_run != 0 && active_run != run_id_ && active_run != ignored_) {
+    Track(active_run);
+    ignored_ = run_id_ == 0 ? active_run : 0;
+  }
+  if (run_id_ == 0) return {};
   const bool moving = active_run == run_id_;
   if (curve_.converged) {
     if (!moving || finish_requested_) return {};
