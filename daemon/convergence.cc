@@ -311,15 +311,18 @@ std::optional<Json> ConvergenceWatch::View(const RunDatabase& db, std::int64_t r
   if (!config.converge.enabled) return std::nullopt;
   ConvergenceCurve curve;
   bool calibrating = false;
+  const auto run = db.GetRun(run_id);
   {
     std::lock_guard lock(mutex_);
     if (run_id_ == run_id) {
       curve = curve_;
-      calibrating = pending_ != 0;
+      // A run just done waits for the tick that starts its last checkpoint, on the whole run.
+      const int last = curve.checkpoints.empty() ? 0 : curve.checkpoints.back().plan_index_limit;
+      calibrating = pending_ != 0 || (!curve.converged && run && run->state == RunState::kDone &&
+                                      last < plan_probes_);
     }
   }
   if (curve.checkpoints.empty()) curve = LoadConvergenceCurve(db, run_id);
-  const auto run = db.GetRun(run_id);
   std::string state = "probing";
   if (curve.converged) {
     state = "converged";
