@@ -315,6 +315,7 @@ Json Daemon::RunStatic(RunDatabase& db, std::int64_t run_id) const {
     facts["shape"] = config.rig.mesh_path.empty()
                          ? Json(std::string(SensorShapeName(config.rig.shape.shape)))
                          : Json("mesh");
+    facts["until_converged"] = config.converge.enabled;
     const ProbePlan plan = RunEngine::LoadPlan(db, run_id);
     facts["candidates"] = plan.candidates;
     facts["estimate_s"] = plan.estimate.Total();
@@ -339,7 +340,9 @@ std::optional<Json> Daemon::GetRun(std::int64_t run_id) const {
   }
   const auto calibration = calibration_->State(run_id);
   view["calibration"] = calibration ? Json(*calibration) : Json(nullptr);
-  const auto convergence = convergence_->View(db, run_id);
+  // Read only for the runs that converge: the stored config is parsed for it.
+  const auto convergence =
+      view.value("until_converged", false) ? convergence_->View(db, run_id) : std::optional<Json>();
   view["convergence"] = convergence ? *convergence : Json(nullptr);
   return view;
 }
