@@ -607,118 +607,17 @@ void GrblClient::HandleLine(const std::string& text, Clock::time_point t) {
     listener = listener_;
     switch (msg.kind) {
       case GrblMessageKind::kOk:
-      case GrblMessageKind::kError: {
-        if (in_flight_.empty()) {
-          spdlog::warn("grbl: '{}' with no line in flight, ignored", msg.raw);
-          ++stats_.stray_replies;
-          ++stray_since_welcome_;
-          break;
-        }
-        std::shared_ptr<LineState> line = in_flight_.front();
-        in_flight_.pop_front();
-        in_flight_bytes_ -= line->bytes;
-        ++stats_.replies;
-        if (msg.kind == GrblMessageKind::kOk) {
-          if (line->traits.home) {
-            alarmed_ = false;
-            reset_required_ = false;
-            trusted_ = true;
-          }
-          if (line->traits.unlock) {
-            alarmed_ = false;
-            reset_required_ = false;
-          }
-          ResolveLocked(line, GrblReplyKind::kOk, "", t);
-        } else {
-          line->reply.error_code = msg.code;
-          spdlog::warn("grbl: '{}' -> error:{} ({})", line->reply.line, msg.code, msg.text);
-          ResolveLocked(line, GrblReplyKind::kError, msg.text, t);
-        }
-        PumpLocked();
+      case GrblMessageKind::kError:
+        HandleReplyLocked(msg, t);
         break;
-      }
-      case GrblMessageKind::kAlarm: {
-        alarmed_ = true;
-        last_alarm_ = msg.code;
-        ++stats_.alarms;
-        if (GrblAlarmLosesPosition(msg.code)) trusted_ = false;
-        if (!in_flight_.empty()) in_flight_.front()->reply.alarm_code = msg.code;
-        spdlog::error("grbl: ALARM:{} ({}){}", msg.code, msg.text,
-                      in_flight_.empty()
-                          ? std::string()
-                          : " while '" + in_flight_.front()->reply.line + "' awaited its reply");
-        RefuseQueuedNonSystemLocked("ALARM:" + std::to_string(msg.code) + " (" + msg.text + ")");
+      case GrblMessageKind::kAlarm:
+        HandleAlarmLocked(msg);
         break;
-      }
-      case GrblMessageKind::kWelcome: {
-        ++stats_.resets;
-        const bool was_awaiting = awaiting_welcome_;
-        awaiting_welcome_ = false;
-        info_.firmware = msg.name;
-        info_.version = msg.version;
-        stray_since_welcome_ = 0;
-        const std::size_t voided = in_flight_.size() + queue_.size();
-        VoidAllLocked(GrblReplyKind::kReset, "controller reset (welcome line) before the reply");
-        in_flight_bytes_ = 0;
-        trusted_ = false;
-        // Reports from before the reset say nothing about the position now.
-        latest_status_.reset();
-        last_wco_.reset();
-        alarmed_ = false;  // an alarm at start-up is announced by [MSG:'$H'|'$X' to unlock]
-        reset_required_ = false;
-        if (!was_awaiting) {
-          spdlog::warn(
-              "grbl: unexpected reset ({}); {} line(s) void, position unknown until "
-              "re-homed or verified",
-              msg.raw, voided);
-        } else {
-          spdlog::debug("grbl: welcome '{}'", msg.raw);
-        }
+      case GrblMessageKind::kWelcome:
+        HandleWelcomeLocked(msg);
         break;
-      }
-      case GrblMessageKind::kStatus: {
-        ++stats_.status_reports;
-        if (msg.status.wco) last_wco_ = msg.status.wco;
-        GrblStatusSample sample;
-        sample.status = msg.status;
-        sample.machine_position = msg.status.MachinePosition(last_wco_);
-        sample.received_at = t;
-        latest_status_ = std::move(sample);
-        if (msg.status.state == GrblMachineState::kAlarm) {
-          if (!alarmed_) RefuseQueuedNonSystemLocked("machine in Alarm state");
-          alarmed_ = true;
-        } else if (msg.status.state != GrblMachineState::kUnknown) {
-          alarmed_ = false;
-        }
-        break;
-      }
-      case GrblMessageKind::kMessage: {
-        AttachMessageLocked(msg.raw);
-        if (msg.text.find("to unlock") != std::string::npos) {
-          alarmed_ = true;
-          RefuseQueuedNonSystemLocked("machine in alarm at start-up (" + msg.text + ")");
-        }
-        if (msg.text.find("Reset to continue") != std::string::npos) reset_required_ = true;
-        spdlog::info("grbl: [MSG:{}]", msg.text);
-        break;
-      }
-      case GrblMessageKind::kOptions:
-        AttachMessageLocked(msg.raw);
-        info_.option_codes = msg.option_codes;
-        if (msg.planner_blocks) info_.planner_blocks = *msg.planner_blocks;
-        if (msg.rx_buffer_bytes && *msg.rx_buffer_bytes > options_.rx_reserve_bytes + 8) {
-          rx_buffer_bytes_ = *msg.rx_buffer_bytes;
-          info_.rx_buffer_bytes = rx_buffer_bytes_;
-          info_.rx_buffer_from_firmware = true;
-        }
-        break;
-      case GrblMessageKind::kVersion:
-        AttachMessageLocked(msg.raw);
-        info_.build = msg.version;
-        break;
-      case GrblMessageKind::kSetting:
-        AttachMessageLocked(msg.raw);
-        if (msg.setting_value) info_.settings[msg.setting] = *msg.setting_value;
+      case GrblMessageKind::kStatus:
+        HandleStatusLocked(msg, t);
         break;
       case GrblMessageKind::kEmpty:
         break;
@@ -730,13 +629,129 @@ void GrblClient::HandleLine(const std::string& text, Clock::time_point t) {
         }
         break;
       default:
-        AttachMessageLocked(msg.raw);
-        spdlog::debug("grbl: {} '{}'", GrblMessageKindName(msg.kind), msg.raw);
+        HandleInfoLocked(msg);
         break;
     }
   }
   cv_.notify_all();
   if (listener && *listener) (*listener)(msg);
+}
+
+void GrblClient::HandleReplyLocked(const GrblMessage& msg, Clock::time_point t) {
+  if (in_flight_.empty()) {
+    spdlog::warn("grbl: '{}' with no line in flight, ignored", msg.raw);
+    ++stats_.stray_replies;
+    ++stray_since_welcome_;
+    return;
+  }
+  std::shared_ptr<LineState> line = in_flight_.front();
+  in_flight_.pop_front();
+  in_flight_bytes_ -= line->bytes;
+  ++stats_.replies;
+  if (msg.kind == GrblMessageKind::kOk) {
+    if (line->traits.home) {
+      alarmed_ = false;
+      reset_required_ = false;
+      trusted_ = true;
+    }
+    if (line->traits.unlock) {
+      alarmed_ = false;
+      reset_required_ = false;
+    }
+    ResolveLocked(line, GrblReplyKind::kOk, "", t);
+  } else {
+    line->reply.error_code = msg.code;
+    spdlog::warn("grbl: '{}' -> error:{} ({})", line->reply.line, msg.code, msg.text);
+    ResolveLocked(line, GrblReplyKind::kError, msg.text, t);
+  }
+  PumpLocked();
+}
+
+void GrblClient::HandleAlarmLocked(const GrblMessage& msg) {
+  alarmed_ = true;
+  last_alarm_ = msg.code;
+  ++stats_.alarms;
+  if (GrblAlarmLosesPosition(msg.code)) trusted_ = false;
+  if (!in_flight_.empty()) in_flight_.front()->reply.alarm_code = msg.code;
+  spdlog::error("grbl: ALARM:{} ({}){}", msg.code, msg.text,
+                in_flight_.empty()
+                    ? std::string()
+                    : " while '" + in_flight_.front()->reply.line + "' awaited its reply");
+  RefuseQueuedNonSystemLocked("ALARM:" + std::to_string(msg.code) + " (" + msg.text + ")");
+}
+
+void GrblClient::HandleWelcomeLocked(const GrblMessage& msg) {
+  ++stats_.resets;
+  const bool was_awaiting = awaiting_welcome_;
+  awaiting_welcome_ = false;
+  info_.firmware = msg.name;
+  info_.version = msg.version;
+  stray_since_welcome_ = 0;
+  const std::size_t voided = in_flight_.size() + queue_.size();
+  VoidAllLocked(GrblReplyKind::kReset, "controller reset (welcome line) before the reply");
+  in_flight_bytes_ = 0;
+  trusted_ = false;
+  // Reports from before the reset say nothing about the position now.
+  latest_status_.reset();
+  last_wco_.reset();
+  alarmed_ = false;  // an alarm at start-up is announced by [MSG:'$H'|'$X' to unlock]
+  reset_required_ = false;
+  if (!was_awaiting) {
+    spdlog::warn(
+        "grbl: unexpected reset ({}); {} line(s) void, position unknown until "
+        "re-homed or verified",
+        msg.raw, voided);
+  } else {
+    spdlog::debug("grbl: welcome '{}'", msg.raw);
+  }
+}
+
+void GrblClient::HandleStatusLocked(const GrblMessage& msg, Clock::time_point t) {
+  ++stats_.status_reports;
+  if (msg.status.wco) last_wco_ = msg.status.wco;
+  GrblStatusSample sample;
+  sample.status = msg.status;
+  sample.machine_position = msg.status.MachinePosition(last_wco_);
+  sample.received_at = t;
+  latest_status_ = std::move(sample);
+  if (msg.status.state == GrblMachineState::kAlarm) {
+    if (!alarmed_) RefuseQueuedNonSystemLocked("machine in Alarm state");
+    alarmed_ = true;
+  } else if (msg.status.state != GrblMachineState::kUnknown) {
+    alarmed_ = false;
+  }
+}
+
+void GrblClient::HandleInfoLocked(const GrblMessage& msg) {
+  AttachMessageLocked(msg.raw);
+  switch (msg.kind) {
+    case GrblMessageKind::kMessage:
+      if (msg.text.find("to unlock") != std::string::npos) {
+        alarmed_ = true;
+        RefuseQueuedNonSystemLocked("machine in alarm at start-up (" + msg.text + ")");
+      }
+      if (msg.text.find("Reset to continue") != std::string::npos) reset_required_ = true;
+      spdlog::info("grbl: [MSG:{}]", msg.text);
+      break;
+    case GrblMessageKind::kOptions:
+      info_.option_codes = msg.option_codes;
+      if (msg.planner_blocks) info_.planner_blocks = *msg.planner_blocks;
+      if (msg.rx_buffer_bytes && *msg.rx_buffer_bytes > options_.rx_reserve_bytes + 8) {
+        rx_buffer_bytes_ = *msg.rx_buffer_bytes;
+        info_.rx_buffer_bytes = rx_buffer_bytes_;
+        info_.rx_buffer_from_firmware = true;
+      }
+      break;
+    case GrblMessageKind::kVersion:
+      info_.build = msg.version;
+      break;
+    case GrblMessageKind::kSetting:
+      if (msg.setting_value) info_.settings[msg.setting] = *msg.setting_value;
+      break;
+    default:
+      spdlog::debug("grbl: {} '{}'", GrblMessageKindName(msg.kind), msg.raw);
+      break;
+  }
 }
 
 // --- sending -----------------------------------------------------------------------------------

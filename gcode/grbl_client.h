@@ -306,6 +306,13 @@ class GrblClient {
   void ReaderLoop(Transport* transport);
   void PollLoop();
   void HandleLine(const std::string& text, std::chrono::steady_clock::time_point t);
+  // HandleLine's cases, under mu_: an ok or error (resolves the oldest line in flight), an
+  // alarm, the welcome line of a reset, a status report, and what informs (messages, $I, $$).
+  void HandleReplyLocked(const GrblMessage& msg, std::chrono::steady_clock::time_point t);
+  void HandleAlarmLocked(const GrblMessage& msg);
+  void HandleWelcomeLocked(const GrblMessage& msg);
+  void HandleStatusLocked(const GrblMessage& msg, std::chrono::steady_clock::time_point t);
+  void HandleInfoLocked(const GrblMessage& msg);
   // The following *Locked helpers require mu_.
   void PumpLocked();
   void ResolveLocked(const std::shared_ptr<LineState>& line, GrblReplyKind kind, std::string detail,
