@@ -599,11 +599,12 @@
         cp.state !== 'done' ? `failed: ${cp.error}` : cp.targets_met ? 'all met' : 'missed',
         fmtSeconds(cp.seconds)];
       const tr = document.createElement('tr');
-      for (const text of cells) {
+      cells.forEach((text, i) => {
         const td = document.createElement('td');
+        if (i !== 3) td.className = 'num';
         td.textContent = text;
         tr.append(td);
-      }
+      });
       body.append(tr);
     }
   }

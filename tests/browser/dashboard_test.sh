@@ -246,8 +246,10 @@ done
 # ---- a live run --------------------------------------------------------------------------------------
 
 # 1,000 candidates make some 700 probes: at --time-scale 20 (about 5 probes a second) the run
-# lasts over two minutes, far more than the test needs; it is paused at the end.
-api_post runs '{"name":"browser","probes":1000}' 201 > "$TMP/created.json"
+# lasts over two minutes, far more than the test needs; it is paused at the end. It converges
+# in rounds of 25 probes: the page shows its checkpoints.
+api_post runs '{"name":"browser","probes":1000,"until_converged":true,"plan":{"checkpoint_probes":25}}' \
+  201 > "$TMP/created.json"
 RUN=$(json_num id < "$TMP/created.json")
 is_int "$RUN" || fail "no run id in $(cat "$TMP/created.json")"
 PAGE="$URL/#run=$RUN&live=poll"
@@ -289,11 +291,15 @@ fi
 
 # The run must have gone on before the second look: poll the API rather than sleep blindly.
 T1=$SECONDS
+checkpoints() { # the checkpoints the last run view lists
+  grep -o '"plan_index_limit"' "$TMP/run_view.json" | wc -l
+}
 progressed() {
   run_view || return 1
-  [ $((SECONDS - T1)) -ge 3 ] && [ "$(run_num probes_done)" -ge $((DONE1 + 5)) ]
+  [ $((SECONDS - T1)) -ge 3 ] && [ "$(run_num probes_done)" -ge $((DONE1 + 5)) ] &&
+    [ "$(checkpoints)" -ge 1 ]
 }
-wait_until 60 "the run to capture more probes" progressed
+wait_until 90 "the run to capture more probes and calibrate its first round" progressed
 dump dom2
 DONE2=$(dom_text dom2 progress-done)
 TOTAL2=$(dom_text dom2 progress-total)
@@ -304,6 +310,13 @@ is_int "$DONE2" || fail "no integer in #progress-done of dump 2: '$DONE2'"
 [ "$DONE2" -gt "$DONE1" ] || fail "the progress did not grow: $DONE1, then $DONE2"
 [ "$TOTAL2" = "$API_TOTAL" ] || fail "dump 2 shows $TOTAL2 probes in all, the API $API_TOTAL"
 [ "$STATE2" = running ] || fail "dump 2 shows the run $STATE2, not running"
+CONVERGE2=$(dom_text dom2 convergence-state)
+VERDICT2=$(dom_text dom2 convergence-verdict)
+log "dump 2: #convergence-state=$CONVERGE2 #convergence-verdict=$VERDICT2"
+[ -n "$CONVERGE2" ] || fail "dump 2 does not show the run's convergence"
+[[ $VERDICT2 == *probes* ]] || fail "dump 2 shows no checkpoint's verdict: '$VERDICT2'"
+tr -d '\n' < "$TMP/dom2.out" | sed 's/.*id="checkpoints"//; s/<\/table>.*//' | grep -q '<tbody><tr>' ||
+  fail "dump 2 lists no checkpoint in #checkpoints"
 
 # ---- the live page: event stream, phone layout (tests/browser/live_check.py) -----------------------
 
