@@ -221,22 +221,10 @@ Acquired Acquire(const Config& c, const std::filesystem::path& work) {
   if (db.GetRun(a.run_id)->state != RunState::kDone) {
     // The stored run uses this process's virtual rig: its pty and camera socket.
     const auto t0 = Clock::now();
-    SessionOverrides overrides{.machine_uri = a.config.machine.uri,
-                               .camera_uri = a.config.camera.uri};
-    RunReport report = engine.Execute(a.run_id, overrides);
-    if (report.outcome == RunOutcome::kAwaiting) {
-      // Resumed after a kill on a fresh virtual rig: its controller restarted, which the run
-      // rightly asks about; here the answer is known (the virtual tool is clear, it homes).
-      overrides.confirm = db.GetRun(a.run_id)->awaiting;
-      report = engine.Execute(a.run_id, overrides);
-    }
+    ExecuteOnVirtualRig(engine, a.run_id, a.config, "acquisition " + c.Acquisition());
     a.sidecar.data["acquisition_s"] = a.sidecar.data.value("acquisition_s", 0.0) +
                                       std::chrono::duration<double>(Clock::now() - t0).count();
     a.sidecar.Save();
-    if (report.outcome != RunOutcome::kDone) {
-      throw std::runtime_error("acquisition " + c.Acquisition() + " ended " +
-                               std::string(ToString(report.outcome)) + ": " + report.message);
-    }
   }
   return a;
 }

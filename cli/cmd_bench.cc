@@ -36,11 +36,12 @@ double CpuSeconds() {
 
 }  // namespace
 
-void RegisterDaemonBench(CLI::App& bench, CommandContext& ctx);  // bench_daemon.cc
-void RegisterReconBench(CLI::App& bench, CommandContext& ctx);   // bench_recon.cc
-void RegisterSweepBench(CLI::App& bench, CommandContext& ctx);   // bench_sweep.cc
-void RegisterStressBench(CLI::App& bench, CommandContext& ctx);  // bench_stress.cc
-void RegisterSoakBench(CLI::App& bench, CommandContext& ctx);    // bench_soak.cc
+void RegisterDaemonBench(CLI::App& bench, CommandContext& ctx);    // bench_daemon.cc
+void RegisterReconBench(CLI::App& bench, CommandContext& ctx);     // bench_recon.cc
+void RegisterSweepBench(CLI::App& bench, CommandContext& ctx);     // bench_sweep.cc
+void RegisterStressBench(CLI::App& bench, CommandContext& ctx);    // bench_stress.cc
+void RegisterSoakBench(CLI::App& bench, CommandContext& ctx);      // bench_soak.cc
+void RegisterConvergeBench(CLI::App& bench, CommandContext& ctx);  // bench_converge.cc
 
 void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
   static BenchOptions o;
@@ -51,6 +52,7 @@ void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
   RegisterSweepBench(*bench, ctx);
   RegisterStressBench(*bench, ctx);
   RegisterSoakBench(*bench, ctx);
+  RegisterConvergeBench(*bench, ctx);
   auto* acq = bench->add_subcommand(
       "acquisition",
       "Time a run: probing wall time vs the planner's estimate, host time per probe");

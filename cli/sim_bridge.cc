@@ -51,6 +51,22 @@ std::string VirtualSetup::DaemonToml() const {
          "\n\n[camera]\nuri = \"" + config.camera.uri + "\"\n";
 }
 
+RunReport ExecuteOnVirtualRig(RunEngine& engine, std::int64_t run_id, const RunConfig& config,
+                              const std::string& what) {
+  SessionOverrides overrides{.machine_uri = config.machine.uri, .camera_uri = config.camera.uri};
+  RunReport report = engine.Execute(run_id, overrides);
+  if (report.outcome == RunOutcome::kAwaiting) {
+    RunDatabase db(engine.database());
+    overrides.confirm = db.GetRun(run_id)->awaiting;
+    report = engine.Execute(run_id, overrides);
+  }
+  if (report.outcome != RunOutcome::kDone) {
+    throw std::runtime_error(what + " ended " + std::string(ToString(report.outcome)) + ": " +
+                             report.message);
+  }
+  return report;
+}
+
 VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t seed,
                               const std::filesystem::path& frame_socket, const std::string& symlink,
                               const std::function<void(VirtualRigOptions&)>& tweak) {

@@ -8,6 +8,7 @@
 #include <memory>
 
 #include "daemon/run_config.h"
+#include "daemon/run_engine.h"
 #include "rig/rig_config.h"
 #include "sim/virtual_rig.h"
 
@@ -34,6 +35,13 @@ VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t
                               const std::filesystem::path& frame_socket = {},
                               const std::string& symlink = {},
                               const std::function<void(VirtualRigOptions&)>& tweak = {});
+
+// Runs (or resumes) `run_id` on the virtual rig `config` points at (its pty and camera socket)
+// until it ends. A resume on a fresh rig, whose controller restarted, is asked about by the run;
+// here the answer is known (the virtual tool is clear, it homes) and given. Throws
+// std::runtime_error naming `what` when the run does not end done.
+RunReport ExecuteOnVirtualRig(RunEngine& engine, std::int64_t run_id, const RunConfig& config,
+                              const std::string& what);
 
 }  // namespace gs360::cli
 

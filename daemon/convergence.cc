@@ -235,18 +235,24 @@ void ConvergenceWatch::RecordPending(RunDatabase& db) {
   Checkpoint c = CheckpointFromCalibration(view ? *view : Json::object(), pending_);
   pending_ = 0;
   curve_.checkpoints.push_back(c);
+  // Converged stays converged: a checkpoint on the whole run after the verdict only adds probes.
+  const bool was_converged = curve_.converged;
   const Verdict verdict = Judge(curve_.checkpoints, config_);
-  curve_.converged = verdict.converged;
-  curve_.verdict = verdict.reason;
+  if (!was_converged) {
+    curve_.converged = verdict.converged;
+    curve_.verdict = verdict.reason;
+  }
   StoreConvergenceCurve(db, run_id_, curve_);
   std::string figures;
   if (c.state == "done") {
     figures = "mean " + FormatFixed(c.Value(kMean).value_or(NAN), 4) + " mm, > 50 deg " +
               FormatFixed(c.Value(kBand).value_or(NAN), 4) + " mm; ";
   }
-  db.AppendEvent(run_id_, c.state == "done" ? EventLevel::kInfo : EventLevel::kWarning,
-                 "checkpoint at " + std::to_string(c.probes) + " probes (" +
-                     FormatDuration(c.seconds) + "): " + figures + verdict.reason);
+  db.AppendEvent(
+      run_id_, c.state == "done" ? EventLevel::kInfo : EventLevel::kWarning,
+      "checkpoint at " + std::to_string(c.probes) + " probes (" + FormatDuration(c.seconds) +
+          "): " + figures +
+          (was_converged ? "the model now takes in every probe of the run" : verdict.reason));
   hub_.Publish("convergence", {{"run", run_id_},
                                {"checkpoint", c.ToJson()},
                                {"converged", curve_.converged},
@@ -273,8 +279,8 @@ ConvergenceWatch::Action ConvergenceWatch::Tick(std::int64_t active_run,
   }
   if (run_id_ == 0) return {};
   const bool moving = active_run == run_id_;
-  if (curve_.converged) {
-    if (!moving || finish_requested_) return {};
+  if (moving && curve_.converged) {
+    if (finish_requested_) return {};
     finish_requested_ = true;
     return {run_id_, curve_.verdict};
   }
@@ -285,15 +291,20 @@ ConvergenceWatch::Action ConvergenceWatch::Tick(std::int64_t active_run,
     }
     return {};
   }
-  // The run stopped: a run done without converging gets its last checkpoint on the whole plan.
+  // The run stopped. One that probed its whole plan (it did not converge, or its verdict came
+  // after its last probe) gets a last checkpoint on all of it: the model then uses every probe.
   const auto run = db().GetRun(run_id_);
-  const int last = curve_.checkpoints.empty() ? 0 : curve_.checkpoints.back().plan_index_limit;
-  if (run && run->state == RunState::kDone && last < plan_probes_) {
+  if (run && WholeRunDue(*run)) {
     StartCheckpoint(db(), plan_probes_, "the whole run");
   } else {
     run_id_ = 0;  // nothing more to do until it moves again
   }
   return {};
+}
+
+bool ConvergenceWatch::WholeRunDue(const RunRecord& run) const {
+  const int last = curve_.checkpoints.empty() ? 0 : curve_.checkpoints.back().plan_index_limit;
+  return run.state == RunState::kDone && !finish_requested_ && last < plan_probes_;
 }
 
 bool ConvergenceWatch::Calibrating(std::int64_t run_id) const {
@@ -317,9 +328,7 @@ std::optional<Json> ConvergenceWatch::View(const RunDatabase& db, std::int64_t r
     if (run_id_ == run_id) {
       curve = curve_;
       // A run just done waits for the tick that starts its last checkpoint, on the whole run.
-      const int last = curve.checkpoints.empty() ? 0 : curve.checkpoints.back().plan_index_limit;
-      calibrating = pending_ != 0 || (!curve.converged && run && run->state == RunState::kDone &&
-                                      last < plan_probes_);
+      calibrating = pending_ != 0 || (run && WholeRunDue(*run));
     }
   }
   if (curve.checkpoints.empty()) curve = LoadConvergenceCurve(db, run_id);

@@ -150,6 +150,8 @@ class RunEngine {
   void SetProgressCallback(ProgressCallback callback);
   RunProgress Progress() const;
 
+  const std::filesystem::path& database() const { return database_; }
+
   // The stored plan of a run (the "plan" artifact).
   static ProbePlan LoadPlan(const RunDatabase& db, std::int64_t run_id);
 
