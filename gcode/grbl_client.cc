@@ -472,25 +472,36 @@ void GrblClient::DiscardEarlierSessionReplies(milliseconds quiet, milliseconds l
 }
 
 GrblMachineInfo GrblClient::Handshake() {
-  std::string what;
   std::uint64_t resets_before = 0;
-  {
-    std::lock_guard lock(mu_);
-    what = transport_->Describe();
-    connected_ = true;
-    awaiting_welcome_ = true;
-    alarmed_ = false;
-    reset_required_ = false;
-    trusted_ = false;
-    stray_since_welcome_ = 0;
-    last_alarm_.reset();
-    in_flight_bytes_ = 0;
-    rx_buffer_bytes_ = options_.default_rx_buffer_bytes;
-    latest_status_.reset();
-    last_wco_.reset();
-    info_ = GrblMachineInfo{};
-    resets_before = stats_.resets;
-  }
+  const std::string what = BeginSession(&resets_before);
+  FeedPendingInput(what);
+  StartThreads();
+  const bool ended_hold = AwaitWelcome(what, resets_before);
+  // $I: build info and, on GRBL 1.1, [OPT:codes,blocks,rx_bytes]; $$: the settings.
+  Query("$I", what);
+  Query("$$", what);
+  return FinishHandshake(what, ended_hold);
+}
+
+std::string GrblClient::BeginSession(std::uint64_t* resets_before) {
+  std::lock_guard lock(mu_);
+  connected_ = true;
+  awaiting_welcome_ = true;
+  alarmed_ = false;
+  reset_required_ = false;
+  trusted_ = false;
+  stray_since_welcome_ = 0;
+  last_alarm_.reset();
+  in_flight_bytes_ = 0;
+  rx_buffer_bytes_ = options_.default_rx_buffer_bytes;
+  latest_status_.reset();
+  last_wco_.reset();
+  info_ = GrblMachineInfo{};
+  *resets_before = stats_.resets;
+  return transport_->Describe();
+}
+
+void GrblClient::FeedPendingInput(const std::string& what) {
   splitter_.Clear();
   std::string pending;
   const std::size_t read = ReadPendingInput(*transport_, &pending);
@@ -507,8 +518,9 @@ GrblMachineInfo GrblClient::Handshake() {
     splitter_.Feed(pending.data() + keep_from, read - keep_from, &lines);
     for (const std::string& line : lines) HandleLine(line, Clock::now());
   }
-  StartThreads();
+}
 
+bool GrblClient::AwaitWelcome(const std::string& what, std::uint64_t resets_before) {
   auto wait_welcome = [&](milliseconds t) {
     std::unique_lock lock(mu_);
     return cv_.wait_for(lock, t, [&] { return stats_.resets > resets_before || !connected_; }) &&
@@ -530,21 +542,19 @@ GrblMachineInfo GrblClient::Handshake() {
           " ms (even after a soft reset): is this a GRBL controller at the right baud?");
     }
   }
+  return ended_hold;
+}
 
-  // $I: build info and, on GRBL 1.1, [OPT:codes,blocks,rx_bytes].
-  GrblReply info_reply = Send("$I").Wait(options_.query_timeout);
-  if (info_reply.kind == GrblReplyKind::kTimeout) {
-    throw GrblError("no reply to $I from " + what + " within " +
+void GrblClient::Query(const std::string& line, const std::string& what) {
+  const GrblReply reply = Send(line).Wait(options_.query_timeout);
+  if (reply.kind == GrblReplyKind::kTimeout) {
+    throw GrblError("no reply to " + line + " from " + what + " within " +
                     std::to_string(options_.query_timeout.count()) + " ms");
   }
-  if (!info_reply.Ok()) spdlog::warn("grbl: $I on {}: {}", what, info_reply.Describe());
-  GrblReply settings_reply = Send("$$").Wait(options_.query_timeout);
-  if (settings_reply.kind == GrblReplyKind::kTimeout) {
-    throw GrblError("no reply to $$ from " + what + " within " +
-                    std::to_string(options_.query_timeout.count()) + " ms");
-  }
-  if (!settings_reply.Ok()) spdlog::warn("grbl: $$ on {}: {}", what, settings_reply.Describe());
+  if (!reply.Ok()) spdlog::warn("grbl: {} on {}: {}", line, what, reply.Describe());
+}
 
+GrblMachineInfo GrblClient::FinishHandshake(const std::string& what, bool ended_hold) {
   std::lock_guard lock(mu_);
   if (!connected_) throw TransportClosed(what + " closed during the handshake");
   info_.rx_buffer_bytes = rx_buffer_bytes_;

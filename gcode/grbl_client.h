@@ -305,6 +305,15 @@ class GrblClient {
   void StopThreads();
   void ReaderLoop(Transport* transport);
   void PollLoop();
+  // Handshake's steps: the session's state reset (returns the transport's description); the
+  // bytes already waiting (an earlier session's dropped, a welcome kept); the welcome awaited
+  // (or a running controller taken as it is, its feed hold ended: returns whether one was; or a
+  // soft reset); a query that must be answered; the machine's info completed.
+  std::string BeginSession(std::uint64_t* resets_before);
+  void FeedPendingInput(const std::string& what);
+  bool AwaitWelcome(const std::string& what, std::uint64_t resets_before);
+  void Query(const std::string& line, const std::string& what);
+  GrblMachineInfo FinishHandshake(const std::string& what, bool ended_hold);
   void HandleLine(const std::string& text, std::chrono::steady_clock::time_point t);
   // HandleLine's cases, under mu_: an ok or error (resolves the oldest line in flight), an
   // alarm, the welcome line of a reset, a status report, and what informs (messages, $I, $$).
