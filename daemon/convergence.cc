@@ -180,7 +180,14 @@ void ConvergenceWatch::Track(std::int64_t run_id) {
   finish_requested_ = false;
   curve_ = {};
   RunDatabase db(database_, RunDatabaseOptions{.read_only = true});
-  const RunConfig config = StoredRunConfig(db, run_id);
+  RunConfig config;
+  try {
+    config = StoredRunConfig(db, run_id);
+  } catch (const std::exception& e) {
+    // Said once: the run is then left alone (it cannot have been created to converge).
+    spdlog::warn("run {}: stored configuration unreadable, not followed: {}", run_id, e.what());
+    return;
+  }
   if (!config.converge.enabled) return;
   run_id_ = run_id;
   config_ = config.converge;
