@@ -201,6 +201,8 @@ int ConvergenceWatch::DueRoundEnd(const RunProgress& progress) const {
   if (progress.plan_index < 2) return 0;
   const int end = (progress.plan_index - 1) / round_ * round_;
   const int last = curve_.checkpoints.empty() ? 0 : curve_.checkpoints.back().plan_index_limit;
+  // A round's end within half a round of the plan's: the whole-run checkpoint comes soon.
+  if (plan_probes_ - end < round_ / 2) return 0;
   return end > last ? end : 0;
 }
 
