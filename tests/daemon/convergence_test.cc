@@ -149,7 +149,8 @@ TEST_CASE("convergence: the report draws the checkpoints with this model's own p
 
 TEST_CASE("convergence: a run through the API calibrates after its rounds and at its end",
           "[daemon][converge][api]") {
-  test::RigFixture f("api-converge", 80, 0.0);
+  // At 20x real time (some 0.1 s a probe), so that the run is still going when it is paused.
+  test::RigFixture f("api-converge", 80, 20.0);
   test::InProcessDaemon d(test::ConfigFor(f));
   auto c = d.Client();
   // Bad requests name the field.
@@ -170,10 +171,16 @@ TEST_CASE("convergence: a run through the API calibrates after its rounds and at
   CHECK(created["convergence"]["state"] == "probing");
   const int total = created["probes_total"].get<int>();
   REQUIRE(total > 40);
-  // Paused past two rounds, the checkpoint calibrating meanwhile is recorded; the resumed run
-  // goes on from the stored curve.
+  // Paused once a checkpoint has started, the checkpoint is recorded while the run stands; the
+  // resumed run goes on from the stored curve.
   REQUIRE(PostJson(c, "/api/v1/runs/1/start", Json::object())->status == 202);
-  WaitRun(c, 1, [](const Json& run) { return run["probes_done"].get<int>() >= 42; });
+  WaitRun(
+      c, 1,
+      [](const Json& run) {
+        return run["convergence"]["state"] == "calibrating" ||
+               !run["convergence"]["checkpoints"].empty();
+      },
+      std::chrono::seconds(120));
   REQUIRE(PostJson(c, "/api/v1/runs/1/pause", Json::object())->status == 202);
   WaitRun(
       c, 1,
@@ -241,7 +248,8 @@ TEST_CASE("convergence: a run whose stored curve has converged ends at once, its
     StoreConvergenceCurve(db, 1, curve);
   }
   REQUIRE(PostJson(c, "/api/v1/runs/1/start", Json::object())->status == 202);
-  const Json run = WaitRun(c, 1, [](const Json& view) { return view["state"] == "done"; });
+  const Json run = WaitRun(
+      c, 1, [](const Json& view) { return view["state"] == "done"; }, std::chrono::seconds(120));
   CHECK(run["convergence"]["state"] == "converged");
   CHECK(run["probes_done"].get<int>() + run["probes_skipped"].get<int>() == total);
   CHECK(run["probes_skipped"].get<int>() > 0);
