@@ -84,6 +84,8 @@ void Replay(RunDatabase& db, std::int64_t run_id, const CalibrationInputs& input
   const double s_per_probe = r->plan_machine_s / std::max(1, r->plan_probes);
   for (int limit = a.round; limit < r->plan_probes + a.round; limit += a.round) {
     const int bound = std::min(limit, r->plan_probes);
+    // As gs360d: a round's end within half a round of the plan's is left to the whole run.
+    if (bound < r->plan_probes && r->plan_probes - bound < a.round / 2) continue;
     const CalibrationResult c = Calibrate(db, run_id, inputs, bound, dir / "model", nullptr);
     Checkpoint cp;
     cp.plan_index_limit = bound;
