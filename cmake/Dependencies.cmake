@@ -31,6 +31,10 @@ find_package(tomlplusplus 3 REQUIRED)
 gs360_note("toml++" "${tomlplusplus_VERSION}")
 pkg_check_modules(HTTPLIB REQUIRED IMPORTED_TARGET cpp-httplib)
 gs360_note("cpp-httplib" "${HTTPLIB_VERSION}")
+# gs360d's server: event-driven, so that idle, slow and streaming clients take no thread
+# (cpp-httplib, kept for the clients, gives each connection a thread: docs/daemon.md).
+pkg_check_modules(MHD REQUIRED IMPORTED_TARGET libmicrohttpd)
+gs360_note("libmicrohttpd" "${MHD_VERSION}")
 pkg_check_modules(SYSTEMD REQUIRED IMPORTED_TARGET libsystemd)
 gs360_note("libsystemd" "${SYSTEMD_VERSION}")
 

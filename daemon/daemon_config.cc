@@ -99,6 +99,10 @@ void ReadDaemon(JsonReader& r, DaemonConfig& c, const std::function<void(JsonRea
     o.Get("max_body_bytes", c.server.max_body_bytes);
     o.Get("max_upload_bytes", c.server.max_upload_bytes);
     o.Get("threads", c.server.threads);
+    o.Get("max_connections", c.server.max_connections);
+    o.Get("max_event_streams", c.server.max_event_streams);
+    o.Get("request_timeout_s", c.server.request_timeout_s);
+    o.Get("idle_timeout_s", c.server.idle_timeout_s);
   });
   r.Object("log", [&](JsonReader& o) {
     o.Get("level", c.log.level);
@@ -135,8 +139,22 @@ void ServerConfig::Check() const {
     Invalid("server.max_upload_bytes", std::to_string(max_upload_bytes),
             "must be >= server.max_body_bytes (" + std::to_string(max_body_bytes) + ")");
   }
-  if (threads < 4 || threads > 1024) {
-    Invalid("server.threads", std::to_string(threads), "must be in 4..1024");
+  if (threads < 1 || threads > 256) {
+    Invalid("server.threads", std::to_string(threads), "must be in 1..256");
+  }
+  if (max_connections < 16 || max_connections > 65536) {
+    Invalid("server.max_connections", std::to_string(max_connections), "must be in 16..65536");
+  }
+  if (max_event_streams < 1 || max_event_streams > max_connections) {
+    Invalid("server.max_event_streams", std::to_string(max_event_streams),
+            "must be in 1..server.max_connections (" + std::to_string(max_connections) + ")");
+  }
+  if (!(request_timeout_s >= 0.1 && request_timeout_s <= 3600)) {
+    Invalid("server.request_timeout_s", std::to_string(request_timeout_s),
+            "must be in 0.1..3600");
+  }
+  if (idle_timeout_s < 1 || idle_timeout_s > 3600) {
+    Invalid("server.idle_timeout_s", std::to_string(idle_timeout_s), "must be in 1..3600");
   }
   if (!token.empty() && token.size() < 16) {
     Invalid("server.token", "a token of " + std::to_string(token.size()) + " characters",
@@ -234,7 +252,11 @@ std::string DaemonConfigToToml(const DaemonConfig& c) {
                  {"token", c.server.token.empty() ? "" : "(set)"},
                  {"max_body_bytes", c.server.max_body_bytes},
                  {"max_upload_bytes", c.server.max_upload_bytes},
-                 {"threads", c.server.threads}};
+                 {"threads", c.server.threads},
+                 {"max_connections", c.server.max_connections},
+                 {"max_event_streams", c.server.max_event_streams},
+                 {"request_timeout_s", c.server.request_timeout_s},
+                 {"idle_timeout_s", c.server.idle_timeout_s}};
   j["log"] = {
       {"level", c.log.level}, {"file_max_bytes", c.log.file_max_bytes}, {"files", c.log.files}};
   const auto vec = [](const Eigen::Vector3d& v) { return nlohmann::json{v.x(), v.y(), v.z()}; };

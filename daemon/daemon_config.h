@@ -28,7 +28,13 @@ struct ServerConfig {
   std::string token;
   std::int64_t max_body_bytes = 1 << 20;     // JSON request bodies
   std::int64_t max_upload_bytes = 64 << 20;  // mesh uploads
-  int threads = 64;                          // HTTP worker threads (event streams hold one each)
+  // Threads that run slow requests (planning, uploads, files); two more run the quick ones
+  // (status, pause, resume, cancel). Connections themselves take no thread (docs/daemon.md).
+  int threads = 4;
+  int max_connections = 2048;     // open sockets of every kind; more are closed at once
+  int max_event_streams = 256;    // GET /api/v1/events streams; more get 503
+  double request_timeout_s = 15;  // to send a whole request (headers and body)
+  int idle_timeout_s = 10;        // silence after which a connection is closed
   void Check() const;
 };
 

@@ -13,6 +13,7 @@ std::int64_t EventHub::Publish(std::string type, nlohmann::json data) {
     while (events_.size() > capacity_) events_.pop_front();
   }
   changed_.notify_all();
+  Notify();
   return id;
 }
 
@@ -39,6 +40,17 @@ void EventHub::Close() {
     closed_ = true;
   }
   changed_.notify_all();
+  Notify();
+}
+
+void EventHub::SetListener(std::function<void()> listener) {
+  std::lock_guard lock(listener_mutex_);
+  listener_ = std::move(listener);
+}
+
+void EventHub::Notify() {
+  std::lock_guard lock(listener_mutex_);
+  if (listener_) listener_();
 }
 
 bool EventHub::Closed() const {

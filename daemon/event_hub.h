@@ -11,6 +11,7 @@
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <mutex>
 #include <string>
 #include <vector>
@@ -37,14 +38,20 @@ class EventHub {
   // Wakes every waiter and makes further waits return at once (shutdown).
   void Close();
   bool Closed() const;
+  // Called (on the publishing thread, after the event is stored) by every Publish and by Close;
+  // nullptr: none. Must not publish.
+  void SetListener(std::function<void()> listener);
 
  private:
+  void Notify();
   mutable std::mutex mutex_;
   mutable std::condition_variable changed_;
   std::deque<HubEvent> events_;
   std::size_t capacity_;
   std::int64_t last_id_ = 0;
   bool closed_ = false;
+  std::function<void()> listener_;  // under listener_mutex_
+  mutable std::mutex listener_mutex_;
 };
 
 }  // namespace gs360

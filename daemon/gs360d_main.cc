@@ -3,9 +3,11 @@
 // by another process, 4 cannot listen on the address.
 
 #include <signal.h>
+#include <sys/resource.h>
 #include <systemd/sd-daemon.h>
 
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
@@ -80,7 +82,25 @@ void NotifyLoop(gs360::Daemon& daemon, const std::atomic<bool>& done) {
   }
 }
 
+// Every connection is a file descriptor: room for server.max_connections and the daemon's own
+// files (database, logs, serial port, camera).
+void RaiseOpenFileLimit(int connections) {
+  rlimit limit{};
+  if (getrlimit(RLIMIT_NOFILE, &limit) != 0) return;
+  const auto want = static_cast<rlim_t>(connections) + 256;
+  if (limit.rlim_cur >= want) return;
+  limit.rlim_cur = std::min(want, limit.rlim_max);
+  setrlimit(RLIMIT_NOFILE, &limit);
+  if (limit.rlim_cur < want) {
+    spdlog::warn(
+        "gs360d: open files limited to {} (hard limit): server.max_connections = {} "
+        "cannot all be open",
+        limit.rlim_cur, connections);
+  }
+}
+
 int Serve(const gs360::DaemonConfig& config, sigset_t signals) {
+  RaiseOpenFileLimit(config.server.max_connections);
   gs360::Daemon daemon(config);
   gs360::HttpApi api(daemon, config.server);
   api.Bind();

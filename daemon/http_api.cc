@@ -1,15 +1,17 @@
 #include "daemon/http_api.h"
 
-#include <httplib.h>
-
 #include <algorithm>
 #include <charconv>
+#include <cstring>
 #include <fstream>
 #include <sstream>
+
+#include <strings.h>
 
 #include <spdlog/spdlog.h>
 
 #include "base/json_reader.h"
+#include "daemon/http_server.h"
 #include "daemon/web_assets.h"
 #include "geometry/mesh.h"
 #include "storage/storage_error.h"
@@ -18,16 +20,18 @@ namespace gs360 {
 namespace {
 
 using Json = nlohmann::json;
-using httplib::Request;
-using httplib::Response;
+using Request = HttpRequest;
+using Response = HttpResponse;
+
+// An event stream with nothing to say sends a comment this often, so that a proxy or a client
+// sees it alive (HttpServerOptions::stream_tick_s asks it at least as often).
+constexpr auto kKeepAlive = std::chrono::seconds(9);
 
 void SendJson(Response& res, int status, const Json& body) {
   res.status = status;
   // Messages may quote what a client sent, bytes that are not UTF-8 included.
-  res.set_content(body.dump(-1, ' ', false, Json::error_handler_t::replace),
-                  // Not the exact type cpp-httplib compresses: brotli at its slowest setting cost
-                  // seconds on large bodies (10,000 probes), and JSON polls are latency-bound.
-                  "application/json; charset=utf-8");
+  res.SetContent(body.dump(-1, ' ', false, Json::error_handler_t::replace),
+                 "application/json; charset=utf-8");
 }
 
 void SendError(Response& res, int status, const std::string& code, const std::string& message,
@@ -47,6 +51,16 @@ std::optional<std::int64_t> ParseId(const std::string& text) {
   return v;
 }
 
+// A literal path as a route pattern.
+std::string RegexQuote(const std::string& text) {
+  std::string out;
+  for (const char ch : text) {
+    if (std::strchr(".^$|()[]{}*+?\\", ch) != nullptr) out += '\\';
+    out += ch;
+  }
+  return out;
+}
+
 bool HostIsLoopback(const std::string& host_header) {
   std::string host = host_header;
   if (!host.empty() && host[0] == '[') {
@@ -55,6 +69,43 @@ bool HostIsLoopback(const std::string& host_header) {
     host = host.substr(0, colon);
   }
   return IsLoopbackAddress(host);
+}
+
+// The media type of a Content-Type header, lower case, without its parameters
+// ("Application/JSON; charset=utf-8" -> "application/json").
+std::string MediaType(const std::string& header) {
+  std::string type = header.substr(0, header.find(';'));
+  const auto first = type.find_first_not_of(" \t");
+  const auto last = type.find_last_not_of(" \t");
+  type = first == std::string::npos ? "" : type.substr(first, last - first + 1);
+  std::transform(type.begin(), type.end(), type.begin(),
+                 [](unsigned char ch) { return static_cast<char>(std::tolower(ch)); });
+  return type;
+}
+
+// The bearer token a request carries: "Authorization: Bearer T" (the scheme in any case, as
+// RFC 7235 says), or "?token=T" for EventSource and links.
+std::string GivenToken(const Request& req) {
+  const std::string auth = req.Header("Authorization");
+  if (auth.size() > 7 && strncasecmp(auth.c_str(), "bearer ", 7) == 0) {
+    const auto start = auth.find_first_not_of(' ', 7);
+    if (start != std::string::npos) return auth.substr(start);
+  }
+  return req.Param("token");
+}
+
+// An optional numeric query argument ("?after=N"): absent is `fallback`, anything but a number
+// >= 0 is a 400 naming it.
+std::int64_t QueryNumber(const Request& req, const std::string& name, std::int64_t fallback) {
+  if (!req.HasParam(name)) return fallback;
+  const std::string text = req.Param(name);
+  std::int64_t v = 0;
+  const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), v);
+  if (text.empty() || ec != std::errc() || end != text.data() + text.size() || v < 0) {
+    throw ConfigError("query: " + name + ": expected a whole number >= 0, got \"" + text + "\"",
+                      name);
+  }
+  return v;
 }
 
 Json ParseBody(const Request& req, std::int64_t max_bytes) {
@@ -86,8 +137,8 @@ void SendAction(Response& res, std::int64_t run_id, const ActionResult& r) {
 void SendPng(Response& res, const std::optional<std::vector<std::uint8_t>>& png,
              const std::string& what) {
   if (!png) return SendError(res, 404, "not_found", what);
-  res.set_header("Cache-Control", "no-store");
-  res.set_content(reinterpret_cast<const char*>(png->data()), png->size(), "image/png");
+  res.SetHeader("Cache-Control", "no-store");
+  res.SetContent(std::string(png->begin(), png->end()), "image/png");
 }
 
 }  // namespace
@@ -108,10 +159,22 @@ bool SameSecret(const std::string& a, const std::string& b) {
 struct HttpApi::Impl {
   Daemon& daemon;
   ServerConfig config;
-  httplib::Server server;
-  int port = 0;
+  HttpServer server;
 
-  Impl(Daemon& d, const ServerConfig& c) : daemon(d), config(c) {}
+  Impl(Daemon& d, const ServerConfig& c) : daemon(d), config(c), server(ServerOptions(c)) {}
+
+  static HttpServerOptions ServerOptions(const ServerConfig& c) {
+    HttpServerOptions o;
+    o.listen = c.listen;
+    o.port = c.port;
+    o.slow_threads = c.threads;
+    o.max_connections = c.max_connections;
+    o.max_streams = c.max_event_streams;
+    o.request_timeout_s = c.request_timeout_s;
+    o.idle_timeout_s = c.idle_timeout_s;
+    o.max_body_bytes = c.max_body_bytes;
+    return o;
+  }
 
   // Runs a handler, turning exceptions into the API's error bodies.
   template <typename F>
@@ -131,129 +194,122 @@ struct HttpApi::Impl {
     }
   }
 
-  httplib::Server::HandlerResponse Screen(const Request& req, Response& res);
+  bool Screen(const Request& req, Response& res);
   void Routes();
   void RunRoutes();
   void FileRoutes();
   void EventStream(const Request& req, Response& res);
+  int port = 0;
 };
 
-httplib::Server::HandlerResponse HttpApi::Impl::Screen(const Request& req, Response& res) {
-  using R = httplib::Server::HandlerResponse;
-  res.set_header("X-Content-Type-Options", "nosniff");
-  res.set_header("Referrer-Policy", "no-referrer");
-  if (config.token.empty() && !HostIsLoopback(req.get_header_value("Host"))) {
+bool HttpApi::Impl::Screen(const Request& req, Response& res) {
+  res.SetHeader("X-Content-Type-Options", "nosniff");
+  res.SetHeader("Referrer-Policy", "no-referrer");
+  if (config.token.empty() && !HostIsLoopback(req.Header("Host"))) {
     SendError(res, 403, "forbidden",
               "this daemon answers only to a loopback Host (no token is configured)");
-    return R::Handled;
+    return true;
   }
-  if (req.path.rfind("/api/", 0) != 0) return R::Unhandled;
+  if (req.path.rfind("/api/", 0) != 0) return false;
   if (!config.token.empty()) {
-    std::string given;
-    const std::string auth = req.get_header_value("Authorization");
-    if (auth.rfind("Bearer ", 0) == 0) given = auth.substr(7);
-    if (given.empty() && req.has_param("token")) given = req.get_param_value("token");
+    const std::string given = GivenToken(req);
     if (given.empty() || !SameSecret(given, config.token)) {
-      res.set_header("WWW-Authenticate", "Bearer");
-      res.set_header("Connection", "close");
+      res.SetHeader("WWW-Authenticate", "Bearer");
+      res.SetHeader("Connection", "close");
       SendError(res, 401, "unauthorized",
                 given.empty() ? "this daemon needs a token: Authorization: Bearer <token>"
                               : "wrong token");
-      return R::Handled;
+      return true;
     }
   }
   if (req.method == "POST") {
-    const std::string type = req.get_header_value("Content-Type");
-    const bool upload = req.path == "/api/v1/meshes";
-    const std::string want = upload ? "application/octet-stream" : "application/json";
-    if (type.rfind(want, 0) != 0) {
-      res.set_header("Connection", "close");
+    const std::string want =
+        req.path == "/api/v1/meshes" ? "application/octet-stream" : "application/json";
+    if (MediaType(req.Header("Content-Type")) != want) {
+      res.SetHeader("Connection", "close");
       SendError(res, 415, "unsupported_media_type",
                 "POST " + req.path + " takes Content-Type: " + want);
-      return R::Handled;
-    }
-    // The body is not read yet: judge it by its declared length (a chunked body is capped by
-    // the server's payload limit, and JSON bodies again in ParseBody).
-    const auto limit =
-        static_cast<std::uint64_t>(upload ? config.max_upload_bytes : config.max_body_bytes);
-    const std::string length = req.get_header_value("Content-Length");
-    std::uint64_t declared = 0;
-    std::from_chars(length.data(), length.data() + length.size(), declared);
-    if (declared > limit) {
-      res.set_header("Connection", "close");
-      SendError(res, 413, "too_large",
-                "the body is larger than " + std::to_string(limit) + " bytes");
-      return R::Handled;
+      return true;
     }
   }
-  return R::Unhandled;
+  return false;
 }
 
 void HttpApi::Impl::Routes() {
-  server.set_pre_routing_handler(
-      [this](const Request& req, Response& res) { return Screen(req, res); });
-  server.set_error_handler(httplib::Server::HandlerWithResponse(
-      [](const Request& req, Response& res) -> httplib::Server::HandlerResponse {
-        if (!res.body.empty()) return httplib::Server::HandlerResponse::Unhandled;
-        if (res.status == 413) {
-          SendError(res, 413, "too_large", "the request body is too large");
-        } else if (res.status == 404) {
-          SendError(res, 404, "not_found", "no such resource: " + req.method + " " + req.path);
-        } else {
-          SendError(res, res.status, "http_" + std::to_string(res.status), "request refused");
-        }
-        return httplib::Server::HandlerResponse::Handled;
-      }));
-  server.set_exception_handler([](const Request&, Response& res, std::exception_ptr ep) {
-    std::string what = "unknown error";
-    try {
-      if (ep) std::rethrow_exception(ep);
-    } catch (const std::exception& e) {
-      what = e.what();
-    } catch (...) {
+  server.SetScreen([this](const Request& req, Response& res) { return Screen(req, res); });
+  server.SetBodyLimit([this](const Request& req) {
+    return req.path == "/api/v1/meshes" ? config.max_upload_bytes : config.max_body_bytes;
+  });
+  server.SetErrorPage([this](const Request& req, Response& res) {
+    res.SetHeader("X-Content-Type-Options", "nosniff");
+    switch (res.status) {
+      case 404:
+        return SendError(res, 404, "not_found", "no such resource: " + req.method + " " + req.path);
+      case 405:
+        return SendError(res, 405, "method_not_allowed",
+                         req.method + " is not used on " + req.path);
+      case 413:
+        return SendError(res, 413, "too_large",
+                         "the body is larger than " +
+                             std::to_string(req.path == "/api/v1/meshes" ? config.max_upload_bytes
+                                                                         : config.max_body_bytes) +
+                             " bytes");
+      case 503:
+        return SendError(res, 503, "unavailable",
+                         "the daemon is stopping, or has " +
+                             std::to_string(config.max_event_streams) +
+                             " event streams open (server.max_event_streams): poll instead");
+      default:
+        return SendError(res, res.status, "internal", "the request failed (see the daemon's log)");
     }
-    SendError(res, 500, "internal", what);
   });
   for (const WebAsset& asset : WebAssets()) {
     const std::string path = asset.path == "/index.html" ? "/" : std::string(asset.path);
-    server.Get(path, [asset](const Request&, Response& res) {
-      res.set_header("Content-Security-Policy",
-                     "default-src 'self'; img-src 'self' data: blob:; frame-src 'self'; "
-                     "object-src 'none'; base-uri 'none'; frame-ancestors 'self'");
-      res.set_header("Cache-Control", "no-cache");
-      res.set_content(std::string(asset.content), std::string(asset.type));
+    server.Route("GET", RegexQuote(path), [asset](const Request&, Response& res) {
+      res.SetHeader("Content-Security-Policy",
+                    "default-src 'self'; img-src 'self' data: blob:; frame-src 'self'; "
+                    "object-src 'none'; base-uri 'none'; frame-ancestors 'self'");
+      res.SetHeader("Cache-Control", "no-cache");
+      res.SetContent(std::string(asset.content), std::string(asset.type));
     });
   }
-  server.Get("/api/v1/info", [this](const Request&, Response& res) {
+  server.Route("GET", "/api/v1/info", [this](const Request&, Response& res) {
     Guarded(res, [&] { SendJson(res, 200, daemon.Info()); });
   });
-  server.Get("/api/v1/events",
-             [this](const Request& req, Response& res) { EventStream(req, res); });
-  server.Get("/api/v1/meshes", [this](const Request&, Response& res) {
+  server.Route("GET", "/api/v1/events", [this](const Request& req, Response& res) {
+    Guarded(res, [&] { EventStream(req, res); });
+  });
+  server.Route("GET", "/api/v1/meshes", [this](const Request&, Response& res) {
     Guarded(res, [&] { SendJson(res, 200, daemon.ListMeshes()); });
   });
-  server.Post("/api/v1/meshes", [this](const Request& req, Response& res) {
-    Guarded(res, [&] {
-      const std::string format = req.has_param("format") ? req.get_param_value("format") : "stl";
-      SendJson(res, 201, daemon.UploadMesh(req.body, format));
-    });
-  });
+  server.Route(
+      "POST", "/api/v1/meshes",
+      [this](const Request& req, Response& res) {
+        Guarded(res, [&] {
+          const std::string format = req.HasParam("format") ? req.Param("format") : "stl";
+          SendJson(res, 201, daemon.UploadMesh(req.body, format));
+        });
+      },
+      Lane::kSlow);
   RunRoutes();
   FileRoutes();
 }
 
 void HttpApi::Impl::RunRoutes() {
-  server.Get("/api/v1/runs", [this](const Request&, Response& res) {
+  server.Route("GET", "/api/v1/runs", [this](const Request&, Response& res) {
     Guarded(res, [&] { SendJson(res, 200, daemon.ListRuns()); });
   });
-  server.Post("/api/v1/runs", [this](const Request& req, Response& res) {
-    Guarded(res, [&] {
-      bool created = false;
-      const Json view = daemon.CreateRun(ParseBody(req, config.max_body_bytes), &created);
-      SendJson(res, created ? 201 : 200, view);
-    });
-  });
-  server.Get(R"(/api/v1/runs/([^/]+))", [this](const Request& req, Response& res) {
+  server.Route(
+      "POST", "/api/v1/runs",
+      [this](const Request& req, Response& res) {
+        Guarded(res, [&] {
+          bool created = false;
+          const Json view = daemon.CreateRun(ParseBody(req, config.max_body_bytes), &created);
+          SendJson(res, created ? 201 : 200, view);
+        });
+      },
+      Lane::kSlow);
+  server.Route("GET", R"(/api/v1/runs/([^/]+))", [this](const Request& req, Response& res) {
     Guarded(res, [&] {
       const auto id = ParseId(req.matches[1]);
       const auto view = id ? daemon.GetRun(*id) : std::nullopt;
@@ -261,7 +317,7 @@ void HttpApi::Impl::RunRoutes() {
       SendJson(res, 200, *view);
     });
   });
-  server.Delete(R"(/api/v1/runs/([^/]+))", [this](const Request& req, Response& res) {
+  server.Route("DELETE", R"(/api/v1/runs/([^/]+))", [this](const Request& req, Response& res) {
     Guarded(res, [&] {
       const auto id = ParseId(req.matches[1]);
       if (!id) return SendError(res, 404, "not_found", "no run " + std::string(req.matches[1]));
@@ -273,83 +329,94 @@ void HttpApi::Impl::RunRoutes() {
       SendAction(res, *id, r);
     });
   });
-  server.Post(R"(/api/v1/runs/([^/]+)/(start|pause|resume|cancel|calibrate))",
-              [this](const Request& req, Response& res) {
-                Guarded(res, [&] {
-                  const auto id = ParseId(req.matches[1]);
-                  if (!id) {
-                    return SendError(res, 404, "not_found",
-                                     "no run " + std::string(req.matches[1]));
-                  }
-                  const Json body = ParseBody(req, config.max_body_bytes);
-                  const std::string action = req.matches[2];
-                  std::string confirm;
-                  if (action == "start" || action == "resume") {
-                    JsonReader reader(body, "request");
-                    reader.Get("confirm", confirm);
-                    reader.RejectUnknown();
-                  } else if (action != "calibrate" && !body.empty()) {
-                    throw ConfigError(
-                        "request body: " + action + " takes no fields, got " + body.begin().key(),
-                        body.begin().key());
-                  }
-                  ActionResult r;
-                  if (action == "start") r = daemon.Start(*id, confirm);
-                  if (action == "pause") r = daemon.Pause(*id);
-                  if (action == "resume") r = daemon.Resume(*id, confirm);
-                  if (action == "cancel") r = daemon.Cancel(*id);
-                  if (action == "calibrate") r = daemon.Calibrate(*id, body);
-                  SendAction(res, *id, r);
-                });
-              });
-  server.Get(R"(/api/v1/runs/([^/]+)/probes)", [this](const Request& req, Response& res) {
+  server.Route("POST", R"(/api/v1/runs/([^/]+)/(start|pause|resume|cancel|calibrate))",
+               [this](const Request& req, Response& res) {
+                 Guarded(res, [&] {
+                   const auto id = ParseId(req.matches[1]);
+                   if (!id) {
+                     return SendError(res, 404, "not_found",
+                                      "no run " + std::string(req.matches[1]));
+                   }
+                   const Json body = ParseBody(req, config.max_body_bytes);
+                   const std::string action = req.matches[2];
+                   std::string confirm;
+                   if (action == "start" || action == "resume") {
+                     JsonReader reader(body, "request");
+                     reader.Get("confirm", confirm);
+                     reader.RejectUnknown();
+                   } else if (action != "calibrate" && !body.empty()) {
+                     throw ConfigError(
+                         "request body: " + action + " takes no fields, got " + body.begin().key(),
+                         body.begin().key());
+                   }
+                   ActionResult r;
+                   if (action == "start") r = daemon.Start(*id, confirm);
+                   if (action == "pause") r = daemon.Pause(*id);
+                   if (action == "resume") r = daemon.Resume(*id, confirm);
+                   if (action == "cancel") r = daemon.Cancel(*id);
+                   if (action == "calibrate") r = daemon.Calibrate(*id, body);
+                   SendAction(res, *id, r);
+                 });
+               });
+  server.Route(
+      "GET", R"(/api/v1/runs/([^/]+)/probes)",
+      [this](const Request& req, Response& res) {
+        Guarded(res, [&] {
+          const auto id = ParseId(req.matches[1]);
+          const auto probes = id ? daemon.ListProbes(*id) : std::nullopt;
+          if (!probes)
+            return SendError(res, 404, "not_found", "no run " + std::string(req.matches[1]));
+          SendJson(res, 200, *probes);
+        });
+      },
+      Lane::kSlow);
+  server.Route("GET", R"(/api/v1/runs/([^/]+)/log)", [this](const Request& req, Response& res) {
     Guarded(res, [&] {
       const auto id = ParseId(req.matches[1]);
-      const auto probes = id ? daemon.ListProbes(*id) : std::nullopt;
-      if (!probes) return SendError(res, 404, "not_found", "no run " + std::string(req.matches[1]));
-      SendJson(res, 200, *probes);
-    });
-  });
-  server.Get(R"(/api/v1/runs/([^/]+)/log)", [this](const Request& req, Response& res) {
-    Guarded(res, [&] {
-      const auto id = ParseId(req.matches[1]);
-      std::int64_t after = 0;
-      if (req.has_param("after")) after = ParseId(req.get_param_value("after")).value_or(0);
+      const std::int64_t after = QueryNumber(req, "after", 0);
       const auto log = id ? daemon.RunLog(*id, after, 1000) : std::nullopt;
       if (!log) return SendError(res, 404, "not_found", "no run " + std::string(req.matches[1]));
       SendJson(res, 200, *log);
     });
   });
-  server.Get(R"(/api/v1/runs/([^/]+)/calibration)", [this](const Request& req, Response& res) {
-    Guarded(res, [&] {
-      const auto id = ParseId(req.matches[1]);
-      const auto view = id ? daemon.Calibration(*id) : std::nullopt;
-      if (!view) return SendError(res, 404, "not_found", "no run " + std::string(req.matches[1]));
-      SendJson(res, 200, *view);
-    });
-  });
+  server.Route(
+      "GET", R"(/api/v1/runs/([^/]+)/calibration)",
+      [this](const Request& req, Response& res) {
+        Guarded(res, [&] {
+          const auto id = ParseId(req.matches[1]);
+          const auto view = id ? daemon.Calibration(*id) : std::nullopt;
+          if (!view)
+            return SendError(res, 404, "not_found", "no run " + std::string(req.matches[1]));
+          SendJson(res, 200, *view);
+        });
+      },
+      Lane::kSlow);
 }
 
 void HttpApi::Impl::FileRoutes() {
-  server.Get(R"(/api/v1/runs/([^/]+)/frames/latest\.png)",
-             [this](const Request& req, Response& res) {
-               Guarded(res, [&] {
-                 const auto id = ParseId(req.matches[1]);
-                 SendPng(res, id ? daemon.LatestFramePng(*id) : std::nullopt,
-                         "no frame of run " + std::string(req.matches[1]) + " yet");
-               });
-             });
-  server.Get(R"(/api/v1/runs/([^/]+)/probes/([^/]+)/frame\.png)", [this](const Request& req,
-                                                                         Response& res) {
-    Guarded(res, [&] {
-      const auto id = ParseId(req.matches[1]);
-      const std::string n = req.matches[2];
-      const bool index_ok =
-          !n.empty() && n.size() < 9 && n.find_first_not_of("0123456789") == std::string::npos;
-      SendPng(res, id && index_ok ? daemon.ProbeFramePng(*id, std::stoi(n)) : std::nullopt,
-              "no captured probe " + n + " in run " + std::string(req.matches[1]));
-    });
-  });
+  server.Route(
+      "GET", R"(/api/v1/runs/([^/]+)/frames/latest\.png)",
+      [this](const Request& req, Response& res) {
+        Guarded(res, [&] {
+          const auto id = ParseId(req.matches[1]);
+          SendPng(res, id ? daemon.LatestFramePng(*id) : std::nullopt,
+                  "no frame of run " + std::string(req.matches[1]) + " yet");
+        });
+      },
+      Lane::kSlow);
+  server.Route(
+      "GET", R"(/api/v1/runs/([^/]+)/probes/([^/]+)/frame\.png)",
+      [this](const Request& req, Response& res) {
+        Guarded(res, [&] {
+          const auto id = ParseId(req.matches[1]);
+          const std::string n = req.matches[2];
+          const bool index_ok =
+              !n.empty() && n.size() < 9 && n.find_first_not_of("0123456789") == std::string::npos;
+          SendPng(res, id && index_ok ? daemon.ProbeFramePng(*id, std::stoi(n)) : std::nullopt,
+                  "no captured probe " + n + " in run " + std::string(req.matches[1]));
+        });
+      },
+      Lane::kSlow);
   struct Kind {
     const char* suffix;
     RunFile file;
@@ -363,112 +430,101 @@ void HttpApi::Impl::FileRoutes() {
       {"validation\\.json", RunFile::kValidation, "application/json; charset=utf-8", ""},
   };
   for (const Kind& kind : kKinds) {
-    server.Get(std::string(R"(/api/v1/runs/([^/]+)/)") + kind.suffix,
-               [this, kind](const Request& req, Response& res) {
-                 Guarded(res, [&] {
-                   const auto id = ParseId(req.matches[1]);
-                   const auto path = id ? daemon.FileOf(*id, kind.file) : std::nullopt;
-                   if (!path) {
-                     return SendError(
-                         res, 404, "not_found",
-                         "run " + std::string(req.matches[1]) + " has no finished calibration");
-                   }
-                   std::ifstream in(*path, std::ios::binary);
-                   std::stringstream ss;
-                   ss << in.rdbuf();
-                   if (*kind.ext != '\0') {
-                     res.set_header("Content-Disposition",
-                                    "attachment; filename=\"" + path->filename().string() + "\"");
-                   }
-                   if (kind.file == RunFile::kReport) {
-                     // The report is self-contained (inline styles, SVG, data: images).
-                     res.set_header("Content-Security-Policy",
-                                    "default-src 'none'; style-src 'unsafe-inline'; img-src "
-                                    "data:; frame-ancestors 'self'");
-                   }
-                   res.set_content(ss.str(), kind.type);
-                 });
-               });
+    server.Route(
+        "GET", std::string(R"(/api/v1/runs/([^/]+)/)") + kind.suffix,
+        [this, kind](const Request& req, Response& res) {
+          Guarded(res, [&] {
+            const auto id = ParseId(req.matches[1]);
+            const auto path = id ? daemon.FileOf(*id, kind.file) : std::nullopt;
+            if (!path) {
+              return SendError(
+                  res, 404, "not_found",
+                  "run " + std::string(req.matches[1]) + " has no finished calibration");
+            }
+            std::ifstream in(*path, std::ios::binary);
+            std::stringstream ss;
+            ss << in.rdbuf();
+            if (*kind.ext != '\0') {
+              res.SetHeader("Content-Disposition",
+                            "attachment; filename=\"" + path->filename().string() + "\"");
+            }
+            if (kind.file == RunFile::kReport) {
+              // The report is self-contained (inline styles, SVG, data: images).
+              res.SetHeader("Content-Security-Policy",
+                            "default-src 'none'; style-src 'unsafe-inline'; img-src "
+                            "data:; frame-ancestors 'self'");
+            }
+            res.SetContent(ss.str(), kind.type);
+          });
+        },
+        Lane::kSlow);
   }
 }
 
 void HttpApi::Impl::EventStream(const Request& req, Response& res) {
   std::int64_t after = daemon.events().LastId();
   // A reconnecting EventSource says where it stopped; ?after= does the same for other clients.
-  const std::string last = req.has_header("Last-Event-ID") ? req.get_header_value("Last-Event-ID")
-                           : req.has_param("after")        ? req.get_param_value("after")
-                                                           : "";
-  if (!last.empty()) {
-    if (last == "0") after = 0;
-    if (const auto id = ParseId(last)) after = *id;
+  if (req.HasHeader("Last-Event-ID")) {
+    if (const auto id = ParseId(req.Header("Last-Event-ID"))) after = *id;
+    if (req.Header("Last-Event-ID") == "0") after = 0;
+  } else if (req.HasParam("after")) {
+    after = QueryNumber(req, "after", after);
   }
   std::optional<std::int64_t> run;
-  if (req.has_param("run")) run = ParseId(req.get_param_value("run"));
-  res.set_header("Cache-Control", "no-store");
-  res.set_header("X-Accel-Buffering", "no");
+  if (req.HasParam("run")) {
+    run = ParseId(req.Param("run"));
+    if (!run) {
+      throw ConfigError("query: run: expected a run id, got \"" + req.Param("run") + "\"", "run");
+    }
+  }
+  res.SetHeader("Cache-Control", "no-store");
+  res.SetHeader("X-Accel-Buffering", "no");
+  res.SetHeader("Content-Type", "text/event-stream");
+  // Runs on the server's I/O thread whenever the hub has published (or at the server's tick):
+  // takes what is new without waiting, and says so with a comment when a tick finds nothing.
   EventHub& hub = daemon.events();
-  res.set_chunked_content_provider(
-      "text/event-stream", [&hub, after, run](std::size_t, httplib::DataSink& sink) mutable {
-        const auto events = hub.WaitAfter(after, std::chrono::seconds(10));
-        if (hub.Closed()) {
-          sink.done();
-          return true;
-        }
-        std::string out;
-        for (const HubEvent& e : events) {
-          after = e.id;
-          if (run && e.data.contains("run") && e.data["run"] != *run) continue;
-          out += "id: " + std::to_string(e.id) + "\nevent: " + e.type + "\ndata: " + e.data.dump() +
-                 "\n\n";
-        }
-        if (out.empty()) out = ": keep-alive\n\n";
-        return sink.write(out.data(), out.size());
-      });
+  auto last_write = std::chrono::steady_clock::now();
+  res.stream = [&hub, after, run, last_write](std::string& out) mutable {
+    if (hub.Closed()) return StreamStep::kEnd;
+    for (const HubEvent& e : hub.WaitAfter(after, std::chrono::milliseconds(0))) {
+      after = e.id;
+      if (run && e.data.contains("run") && e.data["run"] != *run) continue;
+      out += "id: " + std::to_string(e.id) + "\nevent: " + e.type + "\ndata: " + e.data.dump() +
+             "\n\n";
+    }
+    const auto now = std::chrono::steady_clock::now();
+    if (out.empty() && now - last_write >= kKeepAlive) out = ": keep-alive\n\n";
+    if (out.empty()) return StreamStep::kWait;
+    last_write = now;
+    return StreamStep::kData;
+  };
 }
 
 HttpApi::HttpApi(Daemon& daemon, const ServerConfig& config)
     : impl_(std::make_unique<Impl>(daemon, config)) {
-  const int threads = config.threads;
-  impl_->server.new_task_queue = [threads] { return new httplib::ThreadPool(threads); };
-  // The transport's own cap, above which cpp-httplib answers 413 without reading the body;
-  // Screen() applies the per-endpoint limits below it.
-  impl_->server.set_payload_max_length(
-      static_cast<std::size_t>(std::max(config.max_upload_bytes, config.max_body_bytes)));
-  impl_->server.set_read_timeout(10, 0);
-  impl_->server.set_write_timeout(10, 0);
-  impl_->server.set_keep_alive_max_count(1000);
-  impl_->server.set_keep_alive_timeout(5);
   impl_->Routes();
+  // Whatever is published wakes the event streams waiting for it.
+  HttpServer& server = impl_->server;
+  daemon.events().SetListener([&server] { server.WakeStreams(); });
 }
 
 HttpApi::~HttpApi() {
   Stop();
+  impl_->daemon.events().SetListener(nullptr);
 }
 
 int HttpApi::Bind() {
-  const ServerConfig& c = impl_->config;
-  if (c.port == 0) {
-    impl_->port = impl_->server.bind_to_any_port(c.listen);
-    if (impl_->port < 0) impl_->port = 0;
-  } else if (impl_->server.bind_to_port(c.listen, c.port)) {
-    impl_->port = c.port;
-  }
-  if (impl_->port <= 0) {
-    throw ListenError("cannot listen on " + c.listen + ":" + std::to_string(c.port) +
-                      " (in use, or not an address of this machine)");
-  }
+  impl_->port = impl_->server.Bind();
   return impl_->port;
 }
 
 void HttpApi::Serve() {
-  impl_->server.listen_after_bind();
+  impl_->server.Serve();
 }
 
 void HttpApi::Stop() {
-  // Event streams would otherwise hold their worker threads (and this stop) until their next
-  // keep-alive.
   impl_->daemon.events().Close();
-  impl_->server.stop();
+  impl_->server.Stop();
 }
 
 std::string HttpApi::Url() const {

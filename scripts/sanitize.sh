@@ -58,13 +58,17 @@ asan_exclude=(
 tsan_targets="test_storage test_gcode test_sim test_capture test_recon test_calib test_daemon"
 tsan_tests=(
   # the daemon: the event hub's waiters; an in-process daemon's engine thread paused and resumed
-  # from the HTTP threads, two resumes at once; gs360d stopped by SIGTERM. (Not the run_engine
+  # from the HTTP handler threads, two resumes at once; gs360d stopped by SIGTERM. (Not the run_engine
   # tests "the engine runs on its own thread..." and "stop, pause and cancel...": their
   # in-process virtual camera renders too slowly under TSan, every press times out waiting for
   # its frames and the test fails with no TSan report.)
   '^daemon:the event hub delivers in order'
   '^daemon:api: plan, start, pause and resume a run'
   '^daemon:gs360d on SIGTERM'
+  # the HTTP server's I/O thread, its two handler pools, event streams woken by publishers, the
+  # request-time sweeper, and its stop with streams and handlers under way
+  '^daemon:api: idle sockets, slow senders and many event streams'
+  '^daemon:api: chunked bodies are cut'
   # storage: status readers on their own connections while the writer commits; the background
   # capture committer beside the run loop's own writes
   '^storage:readers on other connections'

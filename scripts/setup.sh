@@ -28,7 +28,7 @@ packages=(
   libcamera-dev
   libfftw3-dev
   libonnx-dev libprotobuf-dev
-  nlohmann-json3-dev libcpp-httplib-dev libcli11-dev libtomlplusplus-dev
+  nlohmann-json3-dev libcpp-httplib-dev libmicrohttpd-dev libcli11-dev libtomlplusplus-dev
   libsystemd-dev
   pybind11-dev python3-dev python3-numpy
   curl

@@ -1297,6 +1297,22 @@
     };
   }
 
+  // EventSource does not say why it gave up. A daemon with all its event streams open answers
+  // 503 (server.max_event_streams): say so in the live badge's title, then close the request.
+  async function explainRefusedStream() {
+    const ctl = new AbortController();
+    try {
+      const r = await fetch(withToken(`${API}/events`), { signal: ctl.signal });
+      if (r.status === 503 && state.live === 'polling') {
+        $('live').title = 'gs360d has as many event streams open as it allows ' +
+          '(server.max_event_streams: other tabs or clients): polling every 2 s';
+      }
+    } catch (e) {
+      // Unreachable: the badge already says polling.
+    }
+    ctl.abort();
+  }
+
   function connectEvents() {
     if (source) source.close();
     source = null;
@@ -1322,6 +1338,7 @@
       if (es.readyState === EventSource.CLOSED) {
         source = null;
         reconnectTimer = setTimeout(connectEvents, 15000);
+        explainRefusedStream();
       }
     };
     es.addEventListener('progress', parse(onProgress));
