@@ -135,4 +135,62 @@ std::optional<Impression> FindImpression(const cv::Mat& press, const cv::Mat& re
   return out;
 }
 
+ImpressionShift MeasureImpressionShift(const cv::Mat& stored_press, const cv::Mat& stored_reference,
+                                       const Impression& stored, const cv::Mat& press,
+                                       const cv::Mat& reference, int search_px) {
+  constexpr int kPad = 6;
+  const double blur = ImpressionOptions{}.blur_sigma_px;
+  const char* caller = "MeasureImpressionShift";
+  const cv::Mat then = DifferenceMagnitude(stored_press, stored_reference, cv::Mat(), blur, caller);
+  const cv::Mat now = DifferenceMagnitude(press, reference, cv::Mat(), blur, caller);
+  if (then.size() != now.size()) {
+    throw std::invalid_argument(std::string(caller) + ": the two captures differ in size");
+  }
+  const cv::Rect bounds(0, 0, now.cols, now.rows);
+  const cv::Rect templ = cv::Rect(stored.box.x - kPad, stored.box.y - kPad,
+                                  stored.box.width + 2 * kPad, stored.box.height + 2 * kPad) &
+                         bounds;
+  const cv::Rect search = cv::Rect(templ.x - search_px, templ.y - search_px,
+                                   templ.width + 2 * search_px, templ.height + 2 * search_px) &
+                          bounds;
+  ImpressionShift out;
+  if (templ.width < 3 || templ.height < 3) return out;
+  cv::Mat score;
+  cv::matchTemplate(now(search), then(templ), score, cv::TM_CCOEFF_NORMED);
+  double best = 0.0;
+  cv::Point at;
+  cv::minMaxLoc(score, nullptr, &best, nullptr, &at);
+  // The vertex of the parabola through the peak and its two neighbours along one axis.
+  const auto vertex = [](double left, double centre, double right) {
+    const double curvature = left - 2.0 * centre + right;
+    return curvature < 0.0 ? 0.5 * (left - right) / curvature : 0.0;
+  };
+  double du = 0.0, dv = 0.0;
+  if (at.x > 0 && at.x < score.cols - 1) {
+    du = vertex(score.at<float>(at.y, at.x - 1), best, score.at<float>(at.y, at.x + 1));
+  }
+  if (at.y > 0 && at.y < score.rows - 1) {
+    dv = vertex(score.at<float>(at.y - 1, at.x), best, score.at<float>(at.y + 1, at.x));
+  }
+  out.px = Eigen::Vector2d(search.x + at.x + du - templ.x, search.y + at.y + dv - templ.y);
+  out.score = best;
+  out.at_search_limit = at.x == 0 || at.y == 0 || at.x == score.cols - 1 || at.y == score.rows - 1;
+  return out;
+}
+
+double ImpressionDistance(const ImpressionShift& shift, const Impression& stored,
+                          const Impression& now) {
+  const double measured = shift.px.norm();
+  if (shift.score >= kMinImpressionMatch && !shift.at_search_limit) return measured;
+  return std::max(measured, (stored.centroid - now.centroid).norm());
+}
+
+std::optional<Impression> FindClearImpression(const cv::Mat& press, const cv::Mat& reference,
+                                              double min_peak_dn) {
+  std::optional<Impression> found = FindImpression(press, reference);
+  if (!found || found->peak_dn < min_peak_dn) return std::nullopt;
+  if (found->box.width > press.cols / 4 || found->box.height > press.rows / 4) return std::nullopt;
+  return found;
+}
+
 }  // namespace gs360

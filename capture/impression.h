@@ -42,6 +42,45 @@ std::optional<Impression> FindImpression(const cv::Mat& press, const cv::Mat& re
                                          const ImpressionOptions& options = {},
                                          const cv::Mat& mask = cv::Mat());
 
+// An impression whose centre can be trusted to a pixel (what the resume re-check compares):
+// FindImpression with default options, a peak of at least `min_peak_dn` and a blob smaller than a
+// quarter of the frame each way. Noise or LED drift alone gives a faint peak spread over much of
+// the frame, whose centre moves by tens of pixels. nullopt otherwise; throws as FindImpression.
+std::optional<Impression> FindClearImpression(const cv::Mat& press, const cv::Mat& reference,
+                                              double min_peak_dn);
+
+// Below this correlation (ImpressionShift::score) the impression has changed shape, not only
+// place: the same press captured twice on the virtual rig scores at least 0.996, the sensor
+// moved 0.6 mm sideways down to 0.64.
+inline constexpr double kMinImpressionMatch = 0.9;
+
+// How far a press's impression lies from where an earlier capture of the same press put it.
+struct ImpressionShift {
+  Eigen::Vector2d px = Eigen::Vector2d::Zero();  // now minus then (u right, v down), pixels
+  double score = 0.0;  // normalised cross-correlation at the best alignment, in [-1, 1]
+  // The best alignment lies at the edge of the search window: the shift is at least that far.
+  bool at_search_limit = false;
+};
+
+// The displacement that best aligns the blurred colour-difference magnitude (DifferenceMagnitude,
+// ImpressionOptions' blur) of (press, reference) with that of (stored_press, stored_reference)
+// over `stored`'s blob box padded by 6 px, searched up to `search_px` each way, to a fraction of a
+// pixel by a parabola through the correlation peak. Unlike the distance between two
+// FindImpression centroids it does not depend on where each capture's threshold cuts the blob:
+// noise that joins a side lobe to the blob or moves the peak to another lobe moves a centroid by
+// 1 to 40 px on the virtual rig, and this by a few hundredths (docs/running.md has the figures).
+// Throws std::invalid_argument for frames that are not CV_8UC3 of one size.
+ImpressionShift MeasureImpressionShift(const cv::Mat& stored_press, const cv::Mat& stored_reference,
+                                       const Impression& stored, const cv::Mat& press,
+                                       const cv::Mat& reference, int search_px = 32);
+
+// The resume re-check's distance (px) between a stored impression and its re-press: |shift.px|
+// when the correlation is trusted (score >= kMinImpressionMatch, not at the search limit), else
+// the larger of that and the distance between the two centroids (a changed or far-moved
+// impression must not look still).
+double ImpressionDistance(const ImpressionShift& shift, const Impression& stored,
+                          const Impression& now);
+
 // How much the change near `expected_px` stands out of the whole frame's: the largest blurred
 // colour difference (DifferenceMagnitude, blur_sigma_px) within `radius_px` of it, over the 99th
 // percentile of the difference over the frame's pixels (where `mask` allows). A press near

@@ -167,7 +167,17 @@ ActionResult Daemon::Launch(std::int64_t run_id, bool resume, const std::string&
   if (calibration_->Running() == run_id && !convergence_->Calibrating(run_id)) {
     return Conflict("run is being calibrated", run->state);
   }
-  if (!confirm.empty() && !run->awaiting.empty() && confirm != run->awaiting) {
+  // A confirmation answers the question the run asked, and only that one: unasked, it would
+  // skip a check nobody saw (a jogged tool taken as where it was sent, a ball in the gel homed).
+  if (!confirm.empty() && run->awaiting.empty()) {
+    return Conflict("no confirmation was asked for: run " + std::to_string(run_id) +
+                        " is not waiting for its " + confirm + " to be confirmed. " +
+                        (resume ? "Resume" : "Start") + " it without --confirm (`gs360 run " +
+                        (resume ? "resume " : "start ") + std::to_string(run_id) +
+                        "`): it checks the machine and asks if it needs you to",
+                    run->state);
+  }
+  if (!confirm.empty() && confirm != run->awaiting) {
     return Conflict("the run waits for its " + run->awaiting + " to be confirmed, not its " +
                         confirm + ": " + run->last_error,
                     run->state);

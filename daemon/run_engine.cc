@@ -377,6 +377,12 @@ RunReport RunSession::Awaiting(const Ask& ask) {
 
 RunReport RunSession::Run() {
   LoadRun();
+  if (!overrides_.confirm.empty() && db_.GetRun(run_id_)->awaiting.empty()) {
+    // Nobody asked: the checks run and ask as if it had not been given (the daemon refuses it).
+    Event(EventLevel::kWarning, "a confirmation of the " + overrides_.confirm +
+                                    " that the run did not ask for is ignored");
+    overrides_.confirm.clear();
+  }
   if (const auto run = db_.GetRun(run_id_);
       !run->awaiting.empty() && overrides_.confirm != run->awaiting) {
     // Still waiting for the user: a fresh look at the machine cannot answer what a restart or

@@ -26,10 +26,11 @@
 // - a line that breaks the safety limits (SetSafetyLimits, daemon/safety.h): it is not sent, the
 //   run stops (interrupted, kFailed) naming the line and the limit.
 // Nothing committed is ever lost or probed again. On resume, Execute() first re-presses up to
-// engine.recheck_probes committed probes and compares their impression centres with the stored
-// frames; if the sensor has moved it refuses to continue (kFailed, with the measured shift); if no
-// impression could be compared it stops and asks (kAwaiting "sensor") unless
-// engine.unverified_resume is "continue".
+// engine.recheck_probes committed probes and measures how far their impressions lie from the
+// stored frames' (MeasureImpressionShift, capture/impression.h); if more than
+// engine.recheck_max_shift_px, the sensor has moved and it refuses to continue (kFailed, with the
+// measured shift); if no impression could be compared it stops and asks (kAwaiting "sensor")
+// unless engine.unverified_resume is "continue".
 //
 // Position (docs/running.md, "Faults"): at the start of every session and after every reset or
 // reconnect, the tool's position is known only through homing or a check. A controller that

@@ -135,7 +135,8 @@ std::optional<Ask> RunSession::RecoverLostPosition(const std::vector<Eigen::Vect
                 "motion sent";
   if (config_.machine.home) {
     // It stopped somewhere on the last motion sent: home only if all of it is clear.
-    if (!confirmed && !PathClearOfGel(sent)) {
+    const bool clear = PathClearOfGel(sent);
+    if (!confirmed && !clear) {
       return Ask{"position", why +
                                  ", and the ball may be in or near the gel (it was last sent "
                                  "to " +
@@ -143,6 +144,11 @@ std::optional<Ask> RunSession::RecoverLostPosition(const std::vector<Eigen::Vect
                                  "): homing moves Z first and would drag it. Nothing was moved. "
                                  "Move the tool clear of the sensor by hand, then " +
                                  resume + " (it homes)."};
+    }
+    if (!clear) {
+      Event(EventLevel::kWarning,
+            "confirmed by the user: the tool was moved clear of the sensor (" + why +
+                "; it was last sent to " + Fmt3(sent.back()) + ", in or near the gel); homing");
     }
     Home();
     return std::nullopt;
@@ -156,6 +162,17 @@ std::optional<Ask> RunSession::RecoverLostPosition(const std::vector<Eigen::Vect
   }
   if (client_->Alarmed()) Unlock();
   client_->MarkPositionTrusted();
+  const auto status = client_->QueryStatus(std::chrono::seconds(5));
+  if (!status || !status->machine_position) {
+    throw std::runtime_error("the controller at " + config_.machine.uri +
+                             " reports no machine position");
+  }
+  position_ = *status->machine_position;
+  Event(EventLevel::kWarning,
+        "position confirmed by the user (" + why + "): MPos " + Fmt3(position_) + " taken as true" +
+            (sent.empty() ? "" : "; the tool was last sent to " + Fmt3(sent.back())));
+  // As after a verified position: a ball left in the gel comes out along its probe's axis.
+  BackOutOfGel();
   return std::nullopt;
 }
 
@@ -186,17 +203,27 @@ std::optional<Ask> RunSession::VerifyPosition(const std::vector<Eigen::Vector3d>
                    resume + " to take its position as true" +
                    (config_.machine.home ? " (it homes)." : ".")};
   }
-  if (!confirmed && sent.empty() && !config_.machine.home) {
+  const bool unhomed_start = sent.empty() && !config_.machine.home;
+  if (!confirmed && unhomed_start) {
     return Ask{"position", "homing is off: check that the controller's position (MPos " +
                                Fmt3(reported) + ") is where the tool really is, then " + resume +
                                "."};
   }
-  if (!confirmed && off_path) {
+  // The checks above ran; what the user's confirmation answered goes on record, with the figures.
+  if (confirmed && off_path && !homed) {
+    Event(EventLevel::kWarning, "position confirmed by the user: the controller reports MPos " +
+                                    Fmt3(reported) + ", " + FormatFixed(nearest, 3) +
+                                    " mm from any point of the motion last sent (to " +
+                                    Fmt3(sent.back()) + "); taken as true");
+  } else if (off_path) {
     Event(EventLevel::kInfo,
           "the controller finished the homing cycle sent before the daemon stopped: it stands "
           "at " +
               Fmt3(reported));
-  } else if (!confirmed && !sent.empty()) {
+  } else if (confirmed && unhomed_start) {
+    Event(EventLevel::kWarning, "position confirmed by the user: MPos " + Fmt3(reported) +
+                                    " taken as where the tool is (homing is off)");
+  } else if (!sent.empty()) {
     Event(EventLevel::kInfo,
           "position verified: the controller stands where the last motion sent took it, " +
               Fmt3(reported));
@@ -337,20 +364,6 @@ bool RunSession::Recover(const Step& step) {
   return true;
 }
 
-namespace {
-
-// A stored or re-pressed impression whose centre can be trusted to a pixel: a clear peak in a
-// compact blob. Drift or noise alone gives a faint peak spread over much of the frame.
-std::optional<Impression> ClearImpression(const cv::Mat& press, const cv::Mat& reference,
-                                          double min_peak_dn) {
-  std::optional<Impression> found = FindImpression(press, reference);
-  if (!found || found->peak_dn < min_peak_dn) return std::nullopt;
-  if (found->box.width > press.cols / 4 || found->box.height > press.rows / 4) return std::nullopt;
-  return found;
-}
-
-}  // namespace
-
 std::vector<RunSession::RecheckPick> RunSession::PickRecheckProbes(
     const std::vector<CapturedProbe>& captured, int want) const {
   // Spread over the run (early, middle, late); from each spot the nearest probe whose stored
@@ -368,12 +381,12 @@ std::vector<RunSession::RecheckPick> RunSession::PickRecheckProbes(
       const CapturedProbe& probe = captured[static_cast<std::size_t>(k)];
       const auto ref_info = db_.NearestReferenceFrame(run_id_, probe.frame_time);
       if (!ref_info) continue;
-      const auto stored =
-          ClearImpression(db_.LoadFrame(probe.frame_id), db_.LoadFrame(ref_info->id),
-                          config_.engine.recheck_min_peak_dn);
+      cv::Mat press = db_.LoadFrame(probe.frame_id);
+      cv::Mat reference = db_.LoadFrame(ref_info->id);
+      const auto stored = FindClearImpression(press, reference, config_.engine.recheck_min_peak_dn);
       if (!stored) continue;
       taken[static_cast<std::size_t>(k)] = true;
-      picks.push_back({&probe, *stored});
+      picks.push_back({&probe, *stored, std::move(press), std::move(reference)});
       break;
     }
   }
@@ -401,19 +414,24 @@ std::optional<Ask> RunSession::RecheckSensor() {
     if (k == 0) reference = press.reference;
     if (reference.empty()) continue;
     const Impression& a = picks[k].stored;
-    const auto b = ClearImpression(press.frame, reference, config_.engine.recheck_min_peak_dn);
+    const auto b = FindClearImpression(press.frame, reference, config_.engine.recheck_min_peak_dn);
     if (!b) continue;
-    const double shift = (a.centroid - b->centroid).norm();
+    // Not the two centroids' distance: where each capture's threshold cuts the blob moves them
+    // by 1 to 40 px with nothing moved (capture/impression.h).
+    const ImpressionShift moved =
+        MeasureImpressionShift(picks[k].press, picks[k].reference, a, press.frame, reference);
+    const double shift = ImpressionDistance(moved, a, *b);
+    const Eigen::Vector2d now_at =
+        shift > moved.px.norm() ? b->centroid : Eigen::Vector2d(a.centroid + moved.px);
     worst = std::max(worst, shift);
     ++compared;
     if (shift > config_.engine.recheck_max_shift_px) {
       return Ask{"", "the sensor has moved since the run was interrupted: probe " +
                          std::to_string(old.probe.plan_index) + "'s impression was at (" +
                          FormatFixed(a.centroid.x(), 1) + ", " + FormatFixed(a.centroid.y(), 1) +
-                         ") px and is now at (" + FormatFixed(b->centroid.x(), 1) + ", " +
-                         FormatFixed(b->centroid.y(), 1) + ") px, a shift of " +
-                         FormatFixed(shift, 2) + " px (limit " +
-                         FormatFixed(config_.engine.recheck_max_shift_px, 2) +
+                         ") px and is now at (" + FormatFixed(now_at.x(), 1) + ", " +
+                         FormatFixed(now_at.y(), 1) + ") px, a shift of " + FormatFixed(shift, 2) +
+                         " px (limit " + FormatFixed(config_.engine.recheck_max_shift_px, 2) +
                          "). Re-seat the sensor exactly as before, or start a new run."};
     }
   }

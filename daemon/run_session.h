@@ -189,6 +189,7 @@ class RunSession {
   struct RecheckPick {
     const CapturedProbe* probe;  // into the caller's list
     Impression stored;
+    cv::Mat press, reference;  // the stored frames it was found in
   };
   std::vector<RecheckPick> PickRecheckProbes(const std::vector<CapturedProbe>& captured,
                                              int want) const;
