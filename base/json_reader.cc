@@ -1,11 +1,35 @@
 #include "base/json_reader.h"
 
+#include <charconv>
 #include <cmath>
 #include <fstream>
 #include <limits>
 #include <sstream>
 
 namespace gs360 {
+namespace {
+
+// `v` as a person writes it: whole numbers below 1e15 in full ("100000", not "1e+05"), others
+// in the shortest decimal that reads back as `v` ("0.5", "1e+300").
+std::string Shortest(double v) {
+  char buf[64];
+  const bool whole = std::abs(v) < 1e15 && v == std::floor(v);
+  const auto [end, ec] = whole ? std::to_chars(buf, buf + sizeof(buf), v, std::chars_format::fixed)
+                               : std::to_chars(buf, buf + sizeof(buf), v);
+  return ec == std::errc() ? std::string(buf, end) : std::to_string(v);
+}
+
+}  // namespace
+
+std::string IntRange::Text() const {
+  return std::to_string(min) + ".." + std::to_string(max);
+}
+
+std::string NumberRange::Text() const {
+  std::string s = (min_open ? "(" : "[") + Shortest(min) + ", " + Shortest(max) + "]";
+  if (*unit != '\0') s += std::string(" ") + unit;
+  return s;
+}
 
 std::string WhereField(const std::string& where, const SourceLines* lines,
                        const std::string& path) {
@@ -60,14 +84,44 @@ void JsonReader::Get(const char* key, double& out) {
 }
 
 void JsonReader::Get(const char* key, int& out) {
+  Get(key, out, IntRange{std::numeric_limits<int>::min(), std::numeric_limits<int>::max()});
+}
+
+void JsonReader::Get(const char* key, int& out, const IntRange& range) {
   const auto* v = Find(key);
   if (!v) return;
-  if (!v->is_number_integer()) Fail(key, std::string("expected an integer, got ") + v->dump());
-  const auto i = v->get<long long>();
-  if (i < std::numeric_limits<int>::min() || i > std::numeric_limits<int>::max()) {
-    Fail(key, "integer out of range: " + v->dump());
+  // An unsigned value above INT64_MAX would wrap if read as signed: it is out of range anyway.
+  const bool fits =
+      v->is_number_integer() &&
+      !(v->is_number_unsigned() && v->get<std::uint64_t>() > static_cast<std::uint64_t>(range.max));
+  if (!fits || v->get<std::int64_t>() < range.min || v->get<std::int64_t>() > range.max) {
+    Fail(key, "expected an integer in " + range.Text() + ", got " + v->dump());
   }
-  out = static_cast<int>(i);
+  out = static_cast<int>(v->get<std::int64_t>());
+}
+
+void JsonReader::Get(const char* key, double& out, const NumberRange& range) {
+  const auto* v = Find(key);
+  if (!v) return;
+  const double d = v->is_number() ? v->get<double>() : std::nan("");
+  const bool low_ok = range.min_open ? d > range.min : d >= range.min;
+  if (!v->is_number() || !std::isfinite(d) || !low_ok || !(d <= range.max)) {
+    Fail(key, "expected a number in " + range.Text() + ", got " + v->dump());
+  }
+  out = d;
+}
+
+void JsonReader::Get(const char* key, Eigen::Vector3d& out, const NumberRange& range) {
+  const auto* v = Find(key);
+  if (!v) return;
+  bool ok = v->is_array() && v->size() == 3;
+  for (std::size_t i = 0; ok && i < 3; ++i) {
+    const auto& e = (*v)[i];
+    const double d = e.is_number() ? e.get<double>() : std::nan("");
+    ok = std::isfinite(d) && (range.min_open ? d > range.min : d >= range.min) && d <= range.max;
+  }
+  if (!ok) Fail(key, "expected [x, y, z], each in " + range.Text() + ", got " + v->dump());
+  for (int i = 0; i < 3; ++i) out[i] = (*v)[static_cast<std::size_t>(i)].get<double>();
 }
 
 void JsonReader::Get(const char* key, std::int64_t& out) {
@@ -85,8 +139,9 @@ void JsonReader::Get(const char* key, std::int64_t& out) {
 void JsonReader::Get(const char* key, std::uint64_t& out) {
   const auto* v = Find(key);
   if (!v) return;
-  if (!v->is_number_integer() || v->get<long long>() < 0) {
-    Fail(key, std::string("expected a non-negative integer, got ") + v->dump());
+  if (!v->is_number_unsigned() && !(v->is_number_integer() && v->get<std::int64_t>() >= 0)) {
+    Fail(key, "expected an integer in 0.." +
+                  std::to_string(std::numeric_limits<std::uint64_t>::max()) + ", got " + v->dump());
   }
   out = v->get<std::uint64_t>();
 }

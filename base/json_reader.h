@@ -31,6 +31,21 @@ class ConfigError : public std::runtime_error {
 // path -> 1-based line. A path absent from the map falls back to its nearest listed parent.
 using SourceLines = std::map<std::string, int>;
 
+// The values a numeric field accepts: [min, max], or (min, max] when min_open; `unit` ("mm") is
+// named in the error. Text(): "1..1000000" for integers, "(0, 100] mm" for numbers.
+struct IntRange {
+  int min = 0;
+  int max = 0;
+  std::string Text() const;
+};
+struct NumberRange {
+  double min = 0.0;
+  double max = 0.0;
+  bool min_open = false;
+  const char* unit = "";
+  std::string Text() const;
+};
+
 class JsonReader {
  public:
   // `json` (and `lines`, if given) must outlive the reader. `path` is the field path of this
@@ -48,6 +63,13 @@ class JsonReader {
   void Get(const char* key, Eigen::Vector3d& out);
   void Get(const char* key, std::vector<double>& out);
   void Get(const char* key, std::vector<int>& out);
+  // A number from a user, in its field's range: anything else (a string, a fraction or a float
+  // such as 2e9 for an integer, a value outside) fails naming the range, e.g. "plan.probe_count:
+  // expected an integer in 1..1000000, got 2000000000". Checked here, as the value is read, so
+  // that no out-of-range value reaches code that allocates or loops by it.
+  void Get(const char* key, int& out, const IntRange& range);
+  void Get(const char* key, double& out, const NumberRange& range);
+  void Get(const char* key, Eigen::Vector3d& out, const NumberRange& range);  // each coordinate
   // Nested object: calls `read` with a reader for it when present.
   void Object(const char* key, const std::function<void(JsonReader&)>& read);
   const nlohmann::json* Raw(const char* key);  // marks the key as known; nullptr if absent

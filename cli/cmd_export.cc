@@ -21,6 +21,23 @@ void RegisterExportCommand(CLI::App& app, CommandContext& ctx) {
   cmd->callback([&ctx] {
     DaemonClient client(ctx.daemon_url, ctx.token);
     const std::string base = "/api/v1/runs/" + std::to_string(run);
+    // Before anything is written: the run (3 when there is none) and its finished calibration.
+    client.Get(base);
+    const nlohmann::json calibration = client.Get(base + "/calibration");
+    const std::string state = calibration.value("state", "none");
+    const bool validated = calibration.contains("validation") &&
+                           calibration["validation"].is_object() &&
+                           !calibration["validation"].empty();
+    if (state != "done" || !validated) {
+      const std::string id = std::to_string(run);
+      throw ClientError("run " + id +
+                            " has no finished calibration to export (its calibration is " +
+                            (state == "none"   ? std::string("not started")
+                             : state == "done" ? std::string("done up to a stage before the model")
+                                               : state) +
+                            "): calibrate it with `gs360 calibrate " + id + "`, then export",
+                        kExitNoCalibration);
+    }
     std::filesystem::create_directories(out);
     const std::string stem = "run-" + std::to_string(run);
     struct File {

@@ -1,13 +1,19 @@
 // `gs360 sim-cnc` and `gs360 sim-rig`: the virtual rig as processes any sender can talk to.
 
+#include <unistd.h>
+
 #include <csignal>
 #include <cstdio>
+#include <filesystem>
 #include <thread>
 
+#include "base/hash.h"
 #include "base/json_reader.h"
 #include "cli/commands.h"
+#include "cli/daemon_client.h"
 #include "cli/sim_args.h"
 #include "cli/sim_bridge.h"
+#include "daemon/instance_lock.h"
 #include "rig/rig_config.h"
 #include "sim/virtual_cnc.h"
 #include "sim/virtual_rig.h"
@@ -18,6 +24,25 @@ namespace {
 volatile std::sig_atomic_t g_stop = 0;
 extern "C" void OnSignal(int) {
   g_stop = 1;
+}
+
+// A virtual rig's paths (the CNC's symlink, the frame socket) belong to one rig at a time: a
+// second rig on the same path would take it over, and the first would delete it when it ends.
+// The lock (daemon/instance_lock.h: in the temp folder, named after the path's absolute form)
+// is released by the kernel however its holder ends, so nothing stale is left to refuse.
+InstanceLock LockSimPath(const std::string& path, const std::string& what, const char* option,
+                         const char* command) {
+  const std::string absolute = std::filesystem::absolute(path).lexically_normal().string();
+  const auto lock_file = std::filesystem::temp_directory_path() /
+                         ("gs360-sim-" + HashHex(absolute.data(), absolute.size()) + ".lock");
+  try {
+    return InstanceLock::Acquire(
+        lock_file, what + " " + absolute,
+        std::string("gs360 ") + command + " pid " + std::to_string(::getpid()));
+  } catch (const LockHeldError& e) {
+    throw ClientError(std::string(e.what()) + ": stop that one, or give another " + option,
+                      kExitError);
+  }
 }
 
 struct SimOptions {
@@ -42,6 +67,10 @@ void RegisterSimCommands(CLI::App& app, CommandContext& ctx) {
       ->capture_default_str();
   cnc->add_option("--symlink", o.symlink, "Keep a symlink to the pty here");
   cnc->callback([&ctx] {
+    InstanceLock symlink_lock;
+    if (!o.symlink.empty()) {
+      symlink_lock = LockSimPath(o.symlink, "the CNC's symlink", "--symlink", "sim-cnc");
+    }
     VirtualCncOptions options;
     options.time_scale = o.time_scale;
     options.rx_buffer_bytes = o.rx_buffer;
@@ -65,6 +94,13 @@ void RegisterSimCommands(CLI::App& app, CommandContext& ctx) {
   AddSimArgs(rig, &o.sim);
   shape->excludes("--config");
   rig->callback([rig] {
+    InstanceLock symlink_lock, socket_lock;
+    if (!o.symlink.empty()) {
+      symlink_lock = LockSimPath(o.symlink, "the CNC's symlink", "--symlink", "sim-rig");
+    }
+    if (!o.socket.empty()) {
+      socket_lock = LockSimPath(o.socket, "the frame socket", "--socket", "sim-rig");
+    }
     RigConfig config = LoadSimConfig(*rig, &o.sim, &o.seed).rig;
     if (o.sim.config.empty()) config.shape.shape = ParseSensorShape(o.shape);
     VirtualRigOptions options;

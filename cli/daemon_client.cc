@@ -28,6 +28,17 @@ int ExitCodeFor(int status) {
   }
 }
 
+// What a 409's `state` adds to its message, worded to agree with it. "run is already running"
+// comes while the run's session holds the machine, whatever its record says: a run just started
+// is still "created", one that has just paused or stopped is already "paused" while its session
+// lets go of the machine.
+std::string StateNote(const std::string& message, const std::string& state) {
+  if (message.find("already running") == std::string::npos) return " (the run is " + state + ")";
+  if (state == "running" || state == "starting") return "";
+  if (state == "created") return " (its session is starting)";
+  return ": its session is still ending (the run is " + state + " now); try again in a moment";
+}
+
 }  // namespace
 
 struct DaemonClient::Impl {
@@ -67,7 +78,7 @@ struct DaemonClient::Impl {
       const std::string state = body.contains("state") && body["state"].is_string()
                                     ? body["state"].get<std::string>()
                                     : "";
-      if (!state.empty()) message += " (the run is " + state + ")";
+      if (!state.empty()) message += StateNote(message, state);
     }
     throw ClientError(message, ExitCodeFor(status), status, field);
   }

@@ -17,13 +17,15 @@ namespace gs360::cli {
 // gs360's exit codes.
 enum ExitCode : int {
   kExitOk = 0,
-  kExitError = 1,         // anything else (the daemon failed, a file could not be written)
-  kExitUsage = 2,         // bad arguments, or a request the daemon refused as invalid (400)
-  kExitNotFound = 3,      // no such run (404)
-  kExitConflict = 4,      // the run's state does not allow it (409)
-  kExitUnreachable = 5,   // no daemon answers at the URL
-  kExitUnauthorized = 6,  // token missing or wrong (401)
-  kExitRunStopped = 7,    // a watched run or calibration ended without finishing
+  kExitError = 1,          // anything else (the daemon failed, a file could not be written)
+  kExitUsage = 2,          // bad arguments, or a request the daemon refused as invalid (400)
+  kExitNotFound = 3,       // no such run (404)
+  kExitConflict = 4,       // the run's state does not allow it (409)
+  kExitUnreachable = 5,    // no daemon answers at the URL
+  kExitUnauthorized = 6,   // token missing or wrong (401)
+  kExitRunStopped = 7,     // a watched run or calibration ended without finishing
+  kExitAwaiting = 8,       // the run stopped to ask you to confirm something (it says what)
+  kExitNoCalibration = 9,  // export: the run exists but has no finished calibration
 };
 
 class ClientError : public std::runtime_error {

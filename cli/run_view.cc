@@ -6,6 +6,7 @@
 #include <thread>
 
 #include "base/format.h"
+#include "base/text.h"
 #include "calib/report.h"
 #include "cli/progress.h"
 #include "daemon/run_engine.h"
@@ -86,8 +87,10 @@ void PrintConvergence(std::FILE* out, const Json& run) {
 }
 
 void PrintRun(std::FILE* out, const Json& run) {
-  std::string line = "run " + std::to_string(Count(run, "id")) + " " + Text(run, "name") + "  " +
-                     Text(run, "state") + "  " + std::to_string(Count(run, "probes_done")) + "/" +
+  // Names and errors come from the database: an older one may hold control characters.
+  std::string line = "run " + std::to_string(Count(run, "id")) + " " +
+                     EscapeControlCharacters(Text(run, "name")) + "  " + Text(run, "state") + "  " +
+                     std::to_string(Count(run, "probes_done")) + "/" +
                      std::to_string(Count(run, "probes_total")) + " probes (" +
                      std::to_string(Count(run, "probes_failed")) + " failed, " +
                      std::to_string(Count(run, "probes_skipped")) + " skipped)  elapsed " +
@@ -102,7 +105,8 @@ void PrintRun(std::FILE* out, const Json& run) {
   if (!Text(run, "calibration").empty()) line += "  calibration " + Text(run, "calibration");
   std::fprintf(out, "%s\n", line.c_str());
   if (!Text(run, "last_error").empty()) {
-    std::fprintf(out, "  last error: %s\n", Text(run, "last_error").c_str());
+    std::fprintf(out, "  last error: %s\n",
+                 EscapeControlCharacters(Text(run, "last_error")).c_str());
   }
   PrintConvergence(out, run);
   if (!Text(run, "awaiting").empty()) {
@@ -148,7 +152,24 @@ void PrintCoverageGaps(std::FILE* out, const Json& gaps) {
 }
 
 int ExitCodeOfRun(const Json& run) {
-  return Text(run, "state") == "done" ? kExitOk : kExitRunStopped;
+  if (Text(run, "state") == "done") return kExitOk;
+  return Text(run, "awaiting").empty() ? kExitRunStopped : kExitAwaiting;
+}
+
+bool RunIsActive(const Json& run) {
+  return Active(run);
+}
+
+Json FollowPastChecks(DaemonClient& client, std::int64_t run_id) {
+  const std::string path = "/api/v1/runs/" + std::to_string(run_id);
+  Json run = client.Get(path);
+  // Connecting, homing or verifying the position, re-checking probes: each may end the session
+  // with a question. Once a probe is being pressed the resume has taken.
+  while (Active(run) && Text(run, "phase") != "probing") {
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    run = client.Get(path);
+  }
+  return run;
 }
 
 Json WatchRun(DaemonClient& client, std::int64_t run_id, std::FILE* out, std::FILE* progress_out) {

@@ -31,7 +31,17 @@ nlohmann::json WatchRun(DaemonClient& client, std::int64_t run_id, std::FILE* ou
 // the validation table and the targets. Returns the last calibration view. Throws ClientError.
 nlohmann::json WatchCalibration(DaemonClient& client, std::int64_t run_id, std::FILE* out);
 
-// The exit code a watched run ends with: 0 for done, kExitRunStopped otherwise.
+// After a start or resume was accepted: follows the run (without printing) until it is probing,
+// past the checks that may stop it to ask the user something, or is no longer active. Returns
+// its last view. Throws ClientError.
+nlohmann::json FollowPastChecks(DaemonClient& client, std::int64_t run_id);
+
+// Whether the run's session is on (starting or running).
+bool RunIsActive(const nlohmann::json& run);
+
+// The exit code a watched run ends with: 0 for done, kExitAwaiting when it stopped to ask the
+// user to confirm something (PrintRun says what, and the command that answers it),
+// kExitRunStopped otherwise.
 int ExitCodeOfRun(const nlohmann::json& run);
 
 }  // namespace gs360::cli

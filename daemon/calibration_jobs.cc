@@ -4,6 +4,8 @@
 #include <cmath>
 #include <fstream>
 #include <sstream>
+#include <string_view>
+#include <utility>
 
 #include <spdlog/spdlog.h>
 
@@ -56,6 +58,36 @@ struct CalibrationJobs::Job {
   std::map<std::string, std::string> files;  // model, onnx, report, validation -> path
 };
 
+namespace {
+
+// A CalibrationOptions::Check() message names the field by its C++ type
+// ("TrainOptions.max_epochs"); the request knows it by its key ("max_epochs").
+ConfigError CalibrationRequestError(const std::string& where, const std::string& message) {
+  static constexpr std::pair<std::string_view, std::string_view> kKeys[] = {
+      {"TrainOptions.max_epochs", "max_epochs"},
+      {"TrainOptions.hidden", "hidden"},
+      {"DatasetOptions.max_contact_samples_per_probe", "samples_per_probe"},
+      {"DatasetOptions.max_samples", "max_samples"},
+      {"DatasetOptions.edge_exclusion_mm", "edge_exclusion"},
+      {"HeightFieldOptions.min_view_angle_deg", "hf_min_view_angle"},
+      {"DifferenceOptions.context_sigmas_px", "context_sigmas"},
+      {"DifferenceOptions.smooth_sigma_px", "smooth_sigma"},
+      {"ValidationOptions.max_probes", "max_validation_probes"},
+      {"CalibrationOptions.only_stage", "only"},
+      {"CalibrationOptions.from_stage", "from"},
+      {"CalibrationOptions.to_stage", "to"},
+  };
+  for (const auto& [type, key] : kKeys) {
+    if (message.rfind(type, 0) == 0) {
+      return ConfigError(where + ": " + std::string(key) + message.substr(type.size()),
+                         std::string(key));
+    }
+  }
+  return ConfigError(where + ": " + message);
+}
+
+}  // namespace
+
 void ReadCalibrationRequest(JsonReader& r, CalibrationOptions& o) {
   // Stage selection: names checked here so that the error names the request's field.
   for (const auto& [field, value] : {std::pair{"from", &o.from_stage}, std::pair{"to", &o.to_stage},
@@ -69,17 +101,14 @@ void ReadCalibrationRequest(JsonReader& r, CalibrationOptions& o) {
     }
   }
   // The checkerboard the lens was photographed with: inner corners and square side.
-  r.Get("board_cols", o.intrinsics.board_cols);
-  r.Get("board_rows", o.intrinsics.board_rows);
-  r.Get("square_mm", o.intrinsics.square_mm);
-  if (o.intrinsics.board_cols < 2) r.Fail("board_cols", "expected >= 2 inner corners");
-  if (o.intrinsics.board_rows < 2) r.Fail("board_rows", "expected >= 2 inner corners");
-  if (!(o.intrinsics.square_mm > 0.0 && std::isfinite(o.intrinsics.square_mm))) {
-    r.Fail("square_mm", "expected a finite square side > 0 (mm)");
-  }
-  r.Get("max_epochs", o.train.max_epochs);
+  // Counts checked as they are read, their ranges named; the options' Check() below holds the
+  // rest, its messages renamed to the request's keys (CalibrationRequestError).
+  r.Get("board_cols", o.intrinsics.board_cols, IntRange{2, 1000});
+  r.Get("board_rows", o.intrinsics.board_rows, IntRange{2, 1000});
+  r.Get("square_mm", o.intrinsics.square_mm, NumberRange{0.0, 1000.0, true, "mm"});
+  r.Get("max_epochs", o.train.max_epochs, IntRange{1, 100000});
   r.Get("hidden", o.train.hidden);
-  r.Get("samples_per_probe", o.dataset.max_contact_samples_per_probe);
+  r.Get("samples_per_probe", o.dataset.max_contact_samples_per_probe, IntRange{1, 1000000});
   r.Get("max_samples", o.dataset.max_samples);
   r.Get("edge_exclusion", o.dataset.edge_exclusion_mm);
   std::string integration;
@@ -92,14 +121,10 @@ void ReadCalibrationRequest(JsonReader& r, CalibrationOptions& o) {
     }
   }
   r.Get("hf_min_view_angle", o.reconstruction.integration.height_field.min_view_angle_deg);
-  if (const auto* fourier = r.Raw("fourier")) {
-    if (!fourier->is_number_integer() || fourier->get<int>() < 0) {
-      r.Fail("fourier", "expected a non-negative integer, got " + fourier->dump());
-    }
-    const int frequencies = fourier->get<int>();
-    if (frequencies == 0) o.train.fourier = {};
-    if (frequencies > 0) o.train.fourier.frequencies = frequencies;
-  }
+  int frequencies = -1;
+  r.Get("fourier", frequencies, IntRange{0, 16});  // FourierFeatures' limit (recon/mlp.cc)
+  if (frequencies == 0) o.train.fourier = {};
+  if (frequencies > 0) o.train.fourier.frequencies = frequencies;
   if (r.Raw("context_sigmas") != nullptr) {
     std::vector<double> sigmas;
     r.Get("context_sigmas", sigmas);
@@ -109,13 +134,13 @@ void ReadCalibrationRequest(JsonReader& r, CalibrationOptions& o) {
     }
   }
   r.Get("smooth_sigma", o.reconstruction.difference.smooth_sigma_px);
-  r.Get("max_validation_probes", o.validation.max_probes);
+  r.Get("max_validation_probes", o.validation.max_probes, IntRange{1, 1000000});
   r.Get("model_name", o.model_name);
   r.Get("model_version", o.model_version);
   try {
     o.Check();
   } catch (const std::invalid_argument& e) {
-    throw ConfigError(r.where() + ": " + e.what());
+    throw CalibrationRequestError(r.where(), e.what());
   }
 }
 

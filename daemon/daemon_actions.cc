@@ -34,15 +34,12 @@ ActionResult NotFound(std::int64_t run_id) {
 // The run-creation request's keys, read on top of the daemon's defaults.
 void ReadRunRequest(JsonReader& r, RunConfig& config, std::string* mesh_id, bool* plan_only) {
   r.Get("name", config.name);
+  if (const std::string problem = CheckRunName(config.name); !problem.empty()) {
+    r.Fail("name", problem);
+  }
   r.Object("shape", [&](JsonReader& o) { ReadSensorShape(o, config.rig.shape); });
   r.Get("mesh", *mesh_id);
-  if (const auto* probes = r.Raw("probes")) {
-    if (!probes->is_number_integer() || probes->get<long long>() < 1 ||
-        probes->get<long long>() > 1000000) {
-      r.Fail("probes", "expected an integer in 1..1000000, got " + probes->dump());
-    }
-    config.plan.probe_count = probes->get<int>();
-  }
+  ReadProbeCount(r, "probes", config.plan);
   r.Object("plan", [&](JsonReader& o) { ReadPlanOptions(o, config.plan); });
   r.Get("until_converged", config.converge.enabled);
   r.Object("converge", [&](JsonReader& o) { ReadConvergeConfig(o, config.converge); });
@@ -54,15 +51,27 @@ void ReadRunRequest(JsonReader& r, RunConfig& config, std::string* mesh_id, bool
   }
 }
 
-// The request's field named by a Check() message ("PlanOptions.press_depth must be ...").
-std::string RequestField(const std::string& message) {
-  std::string field = message.substr(0, message.find(' '));
-  for (const auto& [from, to] : {std::pair<std::string, std::string>{"PlanOptions.", "plan."},
-                                 {"plan.", "plan."},
-                                 {"RigConfig.", "rig."}}) {
-    if (field.rfind(from, 0) == 0) return to + field.substr(from.size());
+// A run request the configuration's Check() or the planner refused: a 400 naming the field by
+// its path in the request ("shape.cylinder.radius", "probes"), not in the configuration
+// ("rig.shape.cylinder.radius") nor by a C++ type ("CylinderCapOptions.radius"). A problem of
+// the daemon's own settings that the request's shape or mesh brings out (fins too large for a
+// small shape) names "shape" or "mesh" and then the setting.
+ConfigError RequestError(const std::string& what, const Json& request) {
+  std::string message = WithRunConfigPath(what);
+  const std::string field = RunConfigField(message);
+  const Json* plan = request.contains("plan") ? &request["plan"] : nullptr;
+  std::string to;
+  if (field == "plan.probe_count" && request.contains("probes") &&
+      !(plan != nullptr && plan->is_object() && plan->contains("probe_count"))) {
+    to = "probes";
+  } else if (field.rfind("rig.shape.", 0) == 0) {
+    to = field.substr(4);
+  } else if (field.rfind("plan.", 0) == 0 || field.rfind("converge.", 0) == 0) {
+    to = field;
   }
-  return field.find('.') != std::string::npos ? "shape" : "";
+  if (!to.empty()) return ConfigError("request: " + to + message.substr(field.size()), to);
+  to = request.contains("mesh") ? "mesh" : request.contains("shape") ? "shape" : field;
+  return ConfigError("request: " + (to.empty() || to == field ? "" : to + ": ") + message, to);
 }
 
 Json PlanSummary(const ProbePlan& plan) {
@@ -109,12 +118,21 @@ Json Daemon::CreateRun(const Json& request, bool* created) {
   RunConfig checked = config;
   if (checked.machine.uri.empty()) checked.machine.uri = "unset";
   if (checked.camera.uri.empty()) checked.camera.uri = "unset";
+  ProbePlan plan;
   try {
     checked.Check();
+    plan = RunEngine::PlanRun(checked, &config_.limits);
+  } catch (const ConfigError&) {
+    throw;
+  } catch (const MeshError&) {
+    throw;
   } catch (const std::invalid_argument& e) {
-    throw ConfigError("request: " + std::string(e.what()), RequestField(e.what()));
+    throw RequestError(e.what(), request);
+  } catch (const std::runtime_error& e) {
+    // What the planner found impossible for these values (no area, beyond the travel): the
+    // request's, not the daemon's failure.
+    throw RequestError(e.what(), request);
   }
-  const ProbePlan plan = RunEngine::PlanRun(checked, &config_.limits);
   *created = !plan_only;
   if (plan_only) return PlanSummary(plan, config);
   std::int64_t run_id = 0;
@@ -317,10 +335,14 @@ Json Daemon::UploadMesh(const std::string& bytes, const std::string& format) {
     mesh = LoadMesh(tmp, MeshLoadOptions{}, &report);
   } catch (const std::exception& e) {
     std::filesystem::remove(tmp);
-    // The loader names our temporary file; the client knows its upload by its bytes.
+    // The loader names our temporary file (assimp's messages may name it twice); the client
+    // knows its upload by its bytes.
     std::string why = e.what();
-    const auto at = why.find(tmp.string());
-    if (at != std::string::npos) why.replace(at, tmp.string().size(), "the uploaded mesh");
+    const std::string name = "the uploaded mesh";
+    for (std::size_t at = 0; (at = why.find(tmp.string(), at)) != std::string::npos;) {
+      why.replace(at, tmp.string().size(), name);
+      at += name.size();
+    }
     throw MeshError("mesh: " + why);
   }
   std::filesystem::rename(tmp, dir / (id + "." + format));

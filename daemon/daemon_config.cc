@@ -200,7 +200,8 @@ void DaemonConfig::Check() const {
   try {
     run_check.Check();
   } catch (const std::invalid_argument& e) {
-    throw ConfigError(e.what());
+    // The field ("machine.baud") lets DaemonConfigFromToml name the file's line.
+    throw ConfigError(e.what(), RunConfigField(e.what()));
   }
 }
 

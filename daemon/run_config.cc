@@ -1,10 +1,13 @@
 #include "daemon/run_config.h"
 
 #include <stdexcept>
+#include <string_view>
 
 #include <nlohmann/json.hpp>
 
+#include "base/format.h"
 #include "base/json_reader.h"
+#include "base/text.h"
 
 namespace gs360 {
 namespace {
@@ -14,44 +17,60 @@ namespace {
   throw std::invalid_argument(field + " " + rule + ", got " + value);
 }
 
-// The plan options a user may set, by name. One table serves both directions.
+// The plan options a user may set, by name and range: the one place their values are checked
+// as they are read (JsonReader), before anything plans with them. One table serves both
+// directions. The ranges are physical bounds wide enough for any rig, narrow enough that no
+// value makes the planner allocate or loop without end.
+constexpr double kHalfPi = 1.5707963267948966;
+constexpr NumberRange kMm1000{0.0, 1000.0, false, "mm"};
+constexpr NumberRange kSeconds{0.0, 3600.0, false, "s"};
 struct PlanDoubleField {
   const char* name;
   double PlanOptions::*member;
+  NumberRange range;
 };
 constexpr PlanDoubleField kPlanDoubles[] = {
-    {"candidate_factor", &PlanOptions::candidate_factor},
-    {"ball_radius", &PlanOptions::ball_radius},
-    {"press_depth", &PlanOptions::press_depth},
-    {"clearance", &PlanOptions::clearance},
-    {"stylus_radius", &PlanOptions::stylus_radius},
-    {"stylus_length", &PlanOptions::stylus_length},
-    {"holder_radius", &PlanOptions::holder_radius},
-    {"holder_length", &PlanOptions::holder_length},
-    {"press_feed_mm_per_min", &PlanOptions::press_feed_mm_per_min},
-    {"retract_feed_mm_per_min", &PlanOptions::retract_feed_mm_per_min},
-    {"settle_dwell_s", &PlanOptions::settle_dwell_s},
-    {"capture_time_s", &PlanOptions::capture_time_s},
-    {"status_poll_latency_s", &PlanOptions::status_poll_latency_s},
-    {"host_latency_s", &PlanOptions::host_latency_s},
-    {"reference_dwell_s", &PlanOptions::reference_dwell_s},
-    {"fov_margin_rad", &PlanOptions::fov_margin_rad},
-    {"image_margin_px", &PlanOptions::image_margin_px},
-    {"max_view_angle_rad", &PlanOptions::max_view_angle_rad},
-    {"travel_clearance", &PlanOptions::travel_clearance},
-    {"travel_limit_margin", &PlanOptions::travel_limit_margin},
+    {"candidate_factor", &PlanOptions::candidate_factor, {1.0, 100.0}},
+    {"ball_radius", &PlanOptions::ball_radius, {0.0, 50.0, true, "mm"}},
+    {"press_depth", &PlanOptions::press_depth, {0.0, 10.0, true, "mm"}},
+    {"clearance", &PlanOptions::clearance, {0.0, 100.0, true, "mm"}},
+    {"stylus_radius", &PlanOptions::stylus_radius, {0.0, 50.0, true, "mm"}},
+    {"stylus_length", &PlanOptions::stylus_length, {0.0, 1000.0, true, "mm"}},
+    {"holder_radius", &PlanOptions::holder_radius, kMm1000},
+    {"holder_length", &PlanOptions::holder_length, kMm1000},
+    {"press_feed_mm_per_min",
+     &PlanOptions::press_feed_mm_per_min,
+     {1.0, 100000.0, false, "mm/min"}},
+    {"retract_feed_mm_per_min",
+     &PlanOptions::retract_feed_mm_per_min,
+     {0.0, 100000.0, false, "mm/min"}},
+    {"settle_dwell_s", &PlanOptions::settle_dwell_s, kSeconds},
+    {"capture_time_s", &PlanOptions::capture_time_s, kSeconds},
+    {"status_poll_latency_s", &PlanOptions::status_poll_latency_s, kSeconds},
+    {"host_latency_s", &PlanOptions::host_latency_s, kSeconds},
+    {"reference_dwell_s", &PlanOptions::reference_dwell_s, kSeconds},
+    {"fov_margin_rad", &PlanOptions::fov_margin_rad, {0.0, kHalfPi, false, "rad"}},
+    {"image_margin_px", &PlanOptions::image_margin_px, {0.0, 10000.0, false, "px"}},
+    {"max_view_angle_rad", &PlanOptions::max_view_angle_rad, {0.0, kHalfPi, true, "rad"}},
+    {"travel_clearance", &PlanOptions::travel_clearance, {0.0, 100.0, false, "mm"}},
+    {"travel_limit_margin", &PlanOptions::travel_limit_margin, kMm1000},
 };
 struct PlanIntField {
   const char* name;
   int PlanOptions::*member;
+  IntRange range;
 };
+constexpr IntRange kProbeCountRange{1, 1000000};
 constexpr PlanIntField kPlanInts[] = {
-    {"probe_count", &PlanOptions::probe_count},
-    {"reference_every", &PlanOptions::reference_every},
-    {"neighbours", &PlanOptions::neighbours},
-    {"max_improvement_passes", &PlanOptions::max_improvement_passes},
-    {"checkpoint_probes", &PlanOptions::checkpoint_probes},
+    {"probe_count", &PlanOptions::probe_count, kProbeCountRange},
+    {"reference_every", &PlanOptions::reference_every, {0, 1000000}},
+    {"neighbours", &PlanOptions::neighbours, {1, 100}},
+    {"max_improvement_passes", &PlanOptions::max_improvement_passes, {0, 1000}},
+    {"checkpoint_probes", &PlanOptions::checkpoint_probes, {0, 1000000}},
 };
+// Candidates drawn: probe_count x candidate_factor, at most this many (the sampler holds them
+// all in memory).
+constexpr double kMaxCandidates = 1e7;
 
 nlohmann::json PlanOptionsToJson(const PlanOptions& p) {
   nlohmann::json j;
@@ -74,22 +93,32 @@ nlohmann::json PlanOptionsToJson(const PlanOptions& p) {
 }  // namespace
 
 static void ReadMachineSettings(JsonReader& r, MachineSettings& m) {
-  r.Get("max_rate_mm_per_min", m.max_rate_mm_per_min);
-  r.Get("acceleration_mm_per_s2", m.acceleration_mm_per_s2);
-  r.Get("max_travel_mm", m.max_travel_mm);
-  r.Get("junction_deviation_mm", m.junction_deviation_mm);
-  r.Get("planner_blocks", m.planner_blocks);
+  r.Get("max_rate_mm_per_min", m.max_rate_mm_per_min, {0.0, 1e6, true, "mm/min"});
+  r.Get("acceleration_mm_per_s2", m.acceleration_mm_per_s2, {0.0, 1e7, true, "mm/s^2"});
+  r.Get("max_travel_mm", m.max_travel_mm, {0.0, 1e5, true, "mm"});
+  r.Get("junction_deviation_mm", m.junction_deviation_mm, {0.0, 10.0, false, "mm"});
+  r.Get("planner_blocks", m.planner_blocks, IntRange{1, 1000});
+}
+
+void ReadProbeCount(JsonReader& r, const char* key, PlanOptions& p) {
+  r.Get(key, p.probe_count, kProbeCountRange);
 }
 
 void ReadPlanOptions(JsonReader& r, PlanOptions& p, bool machine) {
   if (machine) r.Object("machine", [&](JsonReader& o) { ReadMachineSettings(o, p.machine); });
-  for (const auto& f : kPlanDoubles) r.Get(f.name, p.*(f.member));
-  for (const auto& f : kPlanInts) r.Get(f.name, p.*(f.member));
+  for (const auto& f : kPlanDoubles) r.Get(f.name, p.*(f.member), f.range);
+  for (const auto& f : kPlanInts) r.Get(f.name, p.*(f.member), f.range);
+  if (p.probe_count * p.candidate_factor > kMaxCandidates) {
+    r.Fail("candidate_factor",
+           "probe_count x candidate_factor (the candidates drawn) must be at "
+           "most 10000000, got " +
+               std::to_string(p.probe_count) + " x " + FormatFixed(p.candidate_factor, 2));
+  }
   r.Get("seed", p.seed);
   r.Get("count_is_kept", p.count_is_kept);
   r.Get("optimise_order", p.optimise_order);
   r.Get("return_to_start", p.return_to_start);
-  r.Get("start_machine", p.start_machine);
+  r.Get("start_machine", p.start_machine, NumberRange{-1e5, 1e5, false, "mm"});
 }
 
 void MachineConfig::Check() const {
@@ -149,13 +178,77 @@ void ConvergeConfig::Check() const {
   }
 }
 
+namespace {
+
+// The parts' Check()s name a field by its type ("PlanOptions.probe_count"); a run
+// configuration's errors name it by its path in the configuration ("plan.probe_count").
+struct FieldPrefix {
+  std::string_view type;
+  std::string_view path;
+};
+constexpr FieldPrefix kFieldPrefixes[] = {
+    {"PlanOptions.", "plan."},
+    {"MachineSettings.", "plan.machine."},
+    {"RigConfig.", "rig."},
+    {"SensorShapeOptions.", "rig.shape."},
+    {"CylinderCapOptions.", "rig.shape.cylinder."},
+    {"ConeOptions.", "rig.shape.cone."},
+    {"SplineOptions.", "rig.shape.spline."},
+    {"TessellationOptions.", "rig.shape."},
+    {"FinOptions.", "rig.fins."},
+    {"FinOptions: ", "rig.fins: "},
+    {"FisheyeIntrinsics.", "rig.camera."},
+    {"CameraControls.", "camera."},
+    {"PressCaptureOptions.timeout ", "camera.capture_timeout_ms "},
+    {"PressCaptureOptions.", "camera."},
+};
+
+std::string WithConfigPath(std::string message) {
+  for (const auto& [type, path] : kFieldPrefixes) {
+    if (message.rfind(type, 0) == 0) return std::string(path) + message.substr(type.size());
+  }
+  return message;
+}
+
+template <typename F>
+void CheckPart(const F& check) {
+  try {
+    check();
+  } catch (const std::invalid_argument& e) {
+    throw std::invalid_argument(WithConfigPath(e.what()));
+  }
+}
+
+}  // namespace
+
+std::string WithRunConfigPath(const std::string& message) {
+  return WithConfigPath(message);
+}
+
+std::string RunConfigField(const std::string& message) {
+  const std::string renamed = WithConfigPath(message);
+  const std::string first = renamed.substr(0, renamed.find_first_of(" [=:"));
+  const bool path =
+      !first.empty() &&
+      first.find_first_not_of("abcdefghijklmnopqrstuvwxyz0123456789_.") == std::string::npos;
+  return path ? first : std::string();
+}
+
+std::string CheckRunName(const std::string& name) {
+  const std::string problem = PrintableTextProblem(name, kMaxRunNameChars);
+  if (problem.empty()) return "";
+  return "must be printable UTF-8 without control characters, at most " +
+         std::to_string(kMaxRunNameChars) + " characters (" + problem + "), got \"" +
+         EscapeControlCharacters(name.substr(0, 4 * kMaxRunNameChars)) + "\"";
+}
+
 void RunConfig::Check() const {
-  rig.Check();
-  plan.Check();
-  machine.Check();
-  camera.Check();
-  engine.Check();
-  converge.Check();
+  CheckPart([&] { rig.Check(); });
+  CheckPart([&] { plan.Check(); });
+  CheckPart([&] { machine.Check(); });
+  CheckPart([&] { camera.Check(); });
+  CheckPart([&] { engine.Check(); });
+  CheckPart([&] { converge.Check(); });
   if (!(plan.press_depth < rig.gel_thickness)) {
     Invalid("plan.press_depth", std::to_string(plan.press_depth),
             "must be less than rig.gel_thickness (" + std::to_string(rig.gel_thickness) + ")");

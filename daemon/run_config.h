@@ -3,6 +3,7 @@
 // uses exactly what the run started with.
 
 #include <chrono>
+#include <cstddef>
 #include <string>
 
 #include <nlohmann/json_fwd.hpp>
@@ -86,9 +87,26 @@ struct RunConfig {
   CameraConfig camera;
   EngineConfig engine;
   ConvergeConfig converge;
-  // Throws std::invalid_argument naming the field and value.
+  // Throws std::invalid_argument naming the field by its path here ("plan.probe_count",
+  // "rig.shape.cylinder.radius"), the rule and the value.
   void Check() const;
 };
+
+// A new run's name: printable UTF-8 (no control character, no bidirectional override) of at
+// most this many characters; names are printed on terminals (`gs360 run list`) and in logs.
+// Checked where runs are created (not by RunConfig::Check(), so that a run an older daemon
+// stored still resumes; what prints names escapes them).
+inline constexpr std::size_t kMaxRunNameChars = 100;
+// Empty for a valid name, else the rule it breaks and the name, escaped ("must be printable
+// UTF-8 ... (control character U+001B at character 1), got "\e[2J"").
+std::string CheckRunName(const std::string& name);
+// The field a RunConfig::Check() message names ("plan.probe_count must be ..." ->
+// "plan.probe_count"), also for a part's own message ("PlanOptions.probe_count ..."); "" when
+// it names none.
+std::string RunConfigField(const std::string& check_message);
+// `message` with a leading type-named field renamed to its path ("PlanOptions.seed ..." ->
+// "plan.seed ..."); other messages unchanged.
+std::string WithRunConfigPath(const std::string& message);
 
 class JsonReader;
 
@@ -103,6 +121,8 @@ void ReadRunConfig(JsonReader& reader, RunConfig& config);
 // "machine" object (the controller's rates, accelerations and travel: gs360d.toml's
 // [plan.machine], never a run's request).
 void ReadPlanOptions(JsonReader& reader, PlanOptions& plan, bool machine = false);
+// plan.probe_count alone, under another key (a request's "probes"), with the same range.
+void ReadProbeCount(JsonReader& reader, const char* key, PlanOptions& plan);
 // Strict: unknown keys, wrong types and invalid values are ConfigError naming `where` and the
 // field path. Absent keys keep their defaults.
 RunConfig RunConfigFromJson(const nlohmann::json& json, const std::string& where);

@@ -555,7 +555,16 @@ TriangleMesh MakeRevolutionMesh(const RevolutionProfile& profile,
   int rings = tessellation.rings;
   if (rings == 0) {
     const double spacing = 2.0 * kPi * profile.BaseRadius() / segs;
-    rings = std::max(1, static_cast<int>(std::lround(profile.ArcLength() / spacing)));
+    const double automatic = profile.ArcLength() / spacing;
+    // Far more than the cap below: checked before it is rounded into an int.
+    rings = automatic > 1e9 ? 1000000000 : std::max(1, static_cast<int>(std::lround(automatic)));
+  }
+  // Before anything is allocated: a thin, tall profile with rings = 0 asks for a great many.
+  if (static_cast<double>(segs) * rings > kMaxRevolutionVertices) {
+    ThrowFieldError("TessellationOptions.segments", static_cast<double>(segs) * rings,
+                    "x rings (the mesh's vertices) must be at most " +
+                        std::to_string(static_cast<long long>(kMaxRevolutionVertices)) +
+                        " (fewer segments, or set rings)");
   }
   TriangleMesh mesh;
   mesh.vertices.reserve(static_cast<std::size_t>(segs) * rings + 1);

@@ -118,6 +118,9 @@ struct TessellationOptions {
 
 // Surface of revolution: vertices exactly on the profile, exact analytic normals, CCW outward,
 // closed except at the base ring (z = 0), which is left open. Vertex 0..segments-1 is the rim.
+// Throws std::invalid_argument (before allocating) when segments x rings, rings = 0 resolved,
+// exceeds kMaxRevolutionVertices.
+inline constexpr double kMaxRevolutionVertices = 4e6;
 TriangleMesh MakeRevolutionMesh(const RevolutionProfile& profile,
                                 const TessellationOptions& tessellation = {});
 

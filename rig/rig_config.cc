@@ -20,6 +20,9 @@ nlohmann::json Vec(const Eigen::Vector3d& v) {
   return {v.x(), v.y(), v.z()};
 }
 
+constexpr NumberRange kShapeMm{0.0, 1000.0, true, "mm"};
+constexpr std::size_t kMaxControlPoints = 1000;
+
 }  // namespace
 
 FinOptions RigConfig::DefaultFins() {
@@ -115,29 +118,39 @@ void ReadSensorShape(JsonReader& s, SensorShapeOptions& shape) {
   } catch (const std::exception& e) {
     s.Fail("type", e.what());
   }
+  // The sizes a user may give, checked as they are read (the shapes' own Check()s hold the
+  // relations between them): a fingertip sensor, not a building, and a mesh of at most some
+  // millions of triangles.
   s.Object("cylinder", [&](JsonReader& o) {
-    o.Get("radius", shape.cylinder.radius);
-    o.Get("height", shape.cylinder.height);
+    o.Get("radius", shape.cylinder.radius, kShapeMm);
+    o.Get("height", shape.cylinder.height, kShapeMm);
   });
   s.Object("cone", [&](JsonReader& o) {
-    o.Get("base_radius", shape.cone.base_radius);
-    o.Get("height", shape.cone.height);
-    o.Get("tip_radius", shape.cone.tip_radius);
+    o.Get("base_radius", shape.cone.base_radius, kShapeMm);
+    o.Get("height", shape.cone.height, kShapeMm);
+    o.Get("tip_radius", shape.cone.tip_radius, kShapeMm);
   });
   s.Object("spline", [&](JsonReader& o) {
     if (const auto* pts = o.Raw("control_points")) {
-      if (!pts->is_array()) o.Fail("control_points", "expected [[z, r], ...]");
+      if (!pts->is_array() || pts->size() > kMaxControlPoints) {
+        o.Fail("control_points", "expected [[z, r], ...] of at most " +
+                                     std::to_string(kMaxControlPoints) + " points");
+      }
       shape.spline.control_points.clear();
       for (const auto& p : *pts) {
-        if (!p.is_array() || p.size() != 2 || !p[0].is_number() || !p[1].is_number()) {
-          o.Fail("control_points", "expected [[z, r], ...], got element " + p.dump());
+        const auto in_range = [](const nlohmann::json& v) {
+          return v.is_number() && v.get<double>() >= 0.0 && v.get<double>() <= kShapeMm.max;
+        };
+        if (!p.is_array() || p.size() != 2 || !in_range(p[0]) || !in_range(p[1])) {
+          o.Fail("control_points",
+                 "expected [[z, r], ...], each in [0, 1000] mm, got element " + p.dump());
         }
         shape.spline.control_points.emplace_back(p[0].get<double>(), p[1].get<double>());
       }
     }
   });
-  s.Get("segments", shape.tessellation.segments);
-  s.Get("rings", shape.tessellation.rings);
+  s.Get("segments", shape.tessellation.segments, IntRange{3, 4096});
+  s.Get("rings", shape.tessellation.rings, IntRange{0, 4096});
 }
 
 void ReadRigConfig(JsonReader& r, RigConfig& c) {

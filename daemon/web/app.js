@@ -873,6 +873,19 @@
       stages.append(li);
     }
 
+    // The calibration's warnings: what missed and what to do about it (more probes, a smaller
+    // network), as `gs360 calibrate` prints them.
+    const warnings = Array.isArray(c.warnings) ? c.warnings : [];
+    const advice = $('calibration-warnings');
+    advice.replaceChildren();
+    for (const w of warnings) {
+      const li = document.createElement('li');
+      li.dataset.code = (w && w.code) || '';
+      li.textContent = (w && w.message) || String(w);
+      advice.append(li);
+    }
+    show('calibration-warnings', warnings.length > 0);
+
     const targets = c.targets || [];
     const body = $('targets').tBodies[0];
     body.replaceChildren();

@@ -9,7 +9,9 @@
 #      sideways;
 #   4. screenshots at 1280x900 and 390x844 (GS360_UPDATE_SCREENSHOT=1 copies the first to
 #      docs/images/dashboard.png; otherwise the source tree is left alone);
-#   5. the run paused through the API: the API, then the dashboard, say paused;
+#   5. the run paused through the API: the API, then the dashboard, say paused; then calibrated
+#      on its few probes with 2 epochs: the page shows the calibration's warnings and advice
+#      (#calibration-warnings: the targets missed, run more probes);
 #   6. gs360d stopped with SIGTERM: it exits 0;
 #   7. gs360d again, with `home = false`: a new run asks to confirm its position before it
 #      moves; the page says so and its start button (live_check.py --confirm) answers it.
@@ -364,6 +366,33 @@ log "dump 3: #run-state=$STATE3 #progress-done=$DONE3 (API: $(run_num probes_don
 [ "$STATE3" = paused ] || fail "the dashboard shows the run $STATE3 after the pause, not paused"
 [ "$DONE3" = "$(run_num probes_done)" ] ||
   fail "the paused run shows $DONE3 probes done, the API $(run_num probes_done)"
+
+# ---- the calibration's warnings and advice --------------------------------------------------------------
+
+# A checkpoint calibration of the converging run may still hold the calibrator: ask until it is
+# free. Two epochs on a few dozen probes miss the targets, so the calibration warns and advises.
+calibrate_asked() {
+  local code
+  code=$(curl -sS --max-time 10 -o "$TMP/answer.json" -w '%{http_code}' -X POST \
+    -H 'Content-Type: application/json' -d '{"max_epochs": 2}' "$URL/api/v1/runs/$RUN/calibrate")
+  [ "$code" = 202 ]
+}
+wait_until 120 "the calibrator to take run $RUN" calibrate_asked
+calibrated() {
+  api_get "runs/$RUN/calibration" > "$TMP/calibration.json" || return 1
+  [ "$(json_str state < "$TMP/calibration.json")" = done ]
+}
+wait_until 240 "run $RUN's calibration to finish" calibrated
+grep -q '"warnings":\[{' "$TMP/calibration.json" ||
+  fail "the calibration of run $RUN has no warnings to show: $(head -c 300 "$TMP/calibration.json")"
+dump dom4
+ADVICE=$(tr -d '\n' < "$TMP/dom4.out" | sed -n 's/.*<ul id="calibration-warnings"[^>]*>\(.*\)<\/ul>.*/\1/p' |
+  sed 's/<\/ul>.*//')
+log "dump 4: #calibration-warnings: $(printf '%s' "$ADVICE" | head -c 200)"
+[[ $ADVICE == *'<li data-code="targets">'*'misses accuracy targets'* ]] ||
+  fail "the dashboard does not show the calibration's warning that the targets were missed"
+[[ $ADVICE == *'data-code="few_probes"'*'Run more probes'* ]] ||
+  fail "the dashboard does not show the calibration's advice to run more probes"
 
 # ---- stop ---------------------------------------------------------------------------------------------------
 

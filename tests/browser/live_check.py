@@ -13,7 +13,8 @@ DevTools protocol on a pipe (--remote-debugging-pipe: no port, no extra package)
 3. Opens the new-run form and asks for an estimate: it must give the probe count and where
    nothing will be probed (the plan's coverage gaps).
 4. Narrows the viewport to a phone's (390x844): nothing may be wider than the screen
-   (no horizontal scrolling) and the runs list must sit above the run (one column).
+   (no horizontal scrolling) and the runs list must sit above the run (one column); a
+   calibration stage's name in a card narrower than it stays one word on one line.
 
 With --confirm, PAGE_URL shows a run that waits for the user to confirm its position: the page
 must say so, its start button must offer to confirm; the check clicks it, answers the dialog with
@@ -156,6 +157,16 @@ LAYOUT = ('(() => { const r = (id) => document.getElementById(id).getBoundingCli
           'sidebarBottom: r("sidebar").bottom, detailTop: r("detail").top, '
           'sidebarWidth: r("sidebar").width, detailWidth: r("detail").width}; })()')
 
+# A stage's name in a card far narrower than the name: how many lines its text takes (a
+# Range has one box per line; the name's own element, a grid item, has one in all).
+STAGE_NAME_LINES = ('(() => { const ol = document.createElement("ol"); ol.className = "stages"; '
+                    'ol.style.width = "60px"; const li = document.createElement("li"); '
+                    'const s = document.createElement("span"); s.className = "stage-name"; '
+                    's.textContent = "intrinsics"; li.append(s); ol.append(li); '
+                    'document.body.append(ol); const r = document.createRange(); '
+                    'r.selectNodeContents(s); const n = r.getClientRects().length; ol.remove(); '
+                    'return n; })()')
+
 
 def log(text):
     print(f'live_check: {text}', flush=True)
@@ -279,6 +290,11 @@ def main():
             return 1
         if layout['sidebarBottom'] > layout['detailTop'] + 1:
             log('FAIL: the runs list and the run are not in one column at a phone\'s width')
+            return 1
+        lines = chrome.eval(STAGE_NAME_LINES)
+        log(f'a stage name in a 60 px card takes {lines} line(s)')
+        if lines != 1:
+            log('FAIL: the dashboard breaks a stage name inside the word')
             return 1
         chrome.eval('1')  # collects what is still in the pipe
         problems = chrome.problems()
