@@ -150,8 +150,7 @@ void ServerConfig::Check() const {
             "must be in 1..server.max_connections (" + std::to_string(max_connections) + ")");
   }
   if (!(request_timeout_s >= 0.1 && request_timeout_s <= 3600)) {
-    Invalid("server.request_timeout_s", std::to_string(request_timeout_s),
-            "must be in 0.1..3600");
+    Invalid("server.request_timeout_s", std::to_string(request_timeout_s), "must be in 0.1..3600");
   }
   if (idle_timeout_s < 1 || idle_timeout_s > 3600) {
     Invalid("server.idle_timeout_s", std::to_string(idle_timeout_s), "must be in 1..3600");

@@ -81,7 +81,7 @@ struct HttpServerOptions {
   double request_timeout_s = 15;  // to send a whole request, from the connection's start or the
                                   // end of its previous response (idle keep-alive included)
   int idle_timeout_s = 10;        // a connection with no byte either way is closed
-  double stream_tick_s = 4;      // streams are woken this often (their keep-alives)
+  double stream_tick_s = 4;       // streams are woken this often (their keep-alives)
   std::int64_t max_header_bytes = 32 << 10;
   std::int64_t max_body_bytes = 1 << 20;  // unless the BodyLimit says otherwise
   void Check() const;                     // throws ConfigError naming the field

@@ -382,7 +382,8 @@ TEST_CASE("api: attacks: path-like ids, huge bodies, foreign hosts, cross-site p
                   "POST /api/v1/runs HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: "
                   "application/json\r\nContent-Length: " +
                       std::to_string(huge) + "\r\n\r\n",
-                  huge) .rfind("HTTP/1.1 413 ", 0) == 0);
+                  huge)
+            .rfind("HTTP/1.1 413 ", 0) == 0);
   // Cross-site posts: a form or text/plain body is refused before anything happens.
   auto r = c.Post("/api/v1/runs/1/start", "a=1", "application/x-www-form-urlencoded");
   CHECK(r->status == 415);
@@ -435,7 +436,8 @@ TEST_CASE("api: with a token every request needs it, and a wrong one gets 401",
                   "Authorization: Bearer " +
                       token + "\r\nContent-Type: application/octet-stream\r\nContent-Length: " +
                       std::to_string(3 << 20) + "\r\n\r\n",
-                  3 << 20) .rfind("HTTP/1.1 413 ", 0) == 0);
+                  3 << 20)
+            .rfind("HTTP/1.1 413 ", 0) == 0);
   // A chunked body that passes the limit and then never ends (the client stops sending): no
   // answer can follow a body that never ended, the connection is closed, nothing is stored.
   CHECK_THAT(RawStatus(d.url,

@@ -369,7 +369,7 @@ TEST_CASE("misuse: a conflict reads right with the state the CLI adds to it",
   std::filesystem::remove_all(dir);
 }
 
-TEST_CASE("misuse: a bad --mesh is named as the user gave it; a folder is said to be one",
+TEST_CASE("misuse: a bad --mesh is named as the user gave it, and a folder is said to be one",
           "[daemon][cli][misuse]") {
   test::RigFixture f("misuse-mesh", 40, 0.0);
   auto daemon = test::StartDaemonProcess(f);
@@ -481,7 +481,7 @@ TEST_CASE(
 
 TEST_CASE(
     "misuse: `run resume` that goes straight back to a question exits 8 with the question "
-    "and its answer; --watch follows; `run log` has times",
+    "and its answer, --watch follows, `run log` has times",
     "[daemon][cli][misuse][confirm]") {
   test::RigFixture f("misuse-resume", 40, 0.0, false, [](VirtualRigOptions& o) {
     o.cnc.settings.homing_enable = false;  // boots Idle at MPos 0,0,0
