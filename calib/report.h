@@ -48,8 +48,10 @@ std::string FormatIntrinsics(const nlohmann::json& metrics);
 // and default integrator: mean depth error <= 0.030 mm, the > 50 deg band <= 0.050 mm, peak
 // indentation error <= 0.050 mm, median normal error <= 3 deg, and with a physical truth the
 // camera pose within 0.05 mm and 0.05 deg. An array of {"name", "value", "comparison" ("<="),
-// "target", "unit", "pass", "truth"}; a figure the validation lacks has value null and pass
-// false. Never throws.
+// "target", "unit", "pass", "no_data", "truth"}; a figure the validation lacks has value null
+// and pass false, except a band no held-out pixel fell in while the validation has some
+// ("no_data": true, "pass": true: the band says nothing, e.g. nothing on a dome is seen past
+// 50 deg). Never throws.
 nlohmann::json ValidationTargets(const nlohmann::json& validation);
 
 // The error-against-probes curve of a run that stops once converged: the points of `earlier`

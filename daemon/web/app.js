@@ -891,7 +891,8 @@
     body.replaceChildren();
     for (const t of targets) {
       const tr = document.createElement('tr');
-      const pass = t.pass === true ? 'pass' : t.pass === false ? 'fail' : 'n/a';
+      const pass = t.no_data === true ? 'n/a'
+        : t.pass === true ? 'pass' : t.pass === false ? 'fail' : 'n/a';
       tr.dataset.result = pass;
       const name = document.createElement('th');
       name.scope = 'row';
@@ -918,7 +919,8 @@
       const badge = document.createElement('span');
       badge.className = 'result';
       badge.dataset.result = pass;
-      badge.textContent = pass === 'pass' ? '✓ pass' : pass === 'fail' ? '✗ fail' : 'n/a';
+      badge.textContent = pass === 'pass' ? '✓ pass' : pass === 'fail' ? '✗ fail'
+        : t.no_data === true ? 'no data' : 'n/a';
       result.append(badge);
       tr.append(name, value, target, result);
       body.append(tr);

@@ -416,4 +416,33 @@ TEST_CASE("calibration warnings: targets missed, too few probes, overfitting, em
   CHECK_NOTHROW(FormatTargetsAndWarnings(Json{{"warnings", 3}}));
 }
 
+TEST_CASE("a band no held-out probe fell in is no data, not a failed target", "[report]") {
+  // A dome seen face-on: nothing past 50 deg, the other figures within their targets.
+  Json v = BandsValidation(0.02, 0.04);
+  v["results"]["rigid"]["heightfield"]["view:>50"] = {{"pixels", 0}, {"mean_mm", nullptr}};
+  const Json targets = ValidationTargets(v);
+  REQUIRE(targets.size() == 4);
+  CHECK(targets[1]["name"] == "depth error seen > 50 deg");
+  CHECK(targets[1]["no_data"] == true);
+  CHECK(targets[1]["pass"] == true);
+  CHECK(targets[0]["no_data"] == false);
+  CHECK(CalibrationWarnings(v, Curve(0.01, 0.011), 2000)[0]["code"] == "empty_band");
+  const std::string text = FormatTargetsAndWarnings(v);
+  CHECK_THAT(text, Catch::Contains("no data") && !Catch::Contains("FAIL"));
+  ReportInputs ri;
+  ri.validation = v;
+  CHECK_THAT(RenderReportHtml(ri), Catch::Contains("no data") && !Catch::Contains("<b>FAIL</b>"));
+
+  // The band absent altogether is no data too; but a validation with no pixels at all, or a
+  // band with pixels and no figure, still fails.
+  v["results"]["rigid"]["heightfield"].erase("view:>50");
+  CHECK(ValidationTargets(v)[1]["no_data"] == true);
+  v["results"]["rigid"]["heightfield"]["view:>50"] = {{"pixels", 40}, {"mean_mm", nullptr}};
+  CHECK(ValidationTargets(v)[1]["pass"] == false);
+  v["results"]["rigid"]["heightfield"]["all"]["pixels"] = 0;
+  v["results"]["rigid"]["heightfield"].erase("view:>50");
+  CHECK(ValidationTargets(v)[1]["no_data"] == false);
+  CHECK(ValidationTargets(v)[1]["pass"] == false);
+}
+
 }  // namespace gs360
