@@ -19,8 +19,7 @@ void PrintPlanSummary(std::FILE* out, const ProbePlan& plan) {
                "than sampling order, %d detoured travels\n",
                FormatDuration(plan.estimate.Total()).c_str(), 100.0 * plan.estimate.TravelShare(),
                100.0 * plan.estimate.PressShare(), plan.TourGain(), plan.detoured_moves);
-  for (const std::string& line :
-       PlanAdvice(plan.dropped, static_cast<int>(plan.probes.size()), plan.candidates)) {
+  for (const std::string& line : PlanAdvice(plan)) {
     std::fprintf(out, "  advice: %s\n", line.c_str());
   }
   PrintCoverageGaps(out, CoverageGapsJson(plan.coverage_gaps));

@@ -80,15 +80,14 @@ Json PlanSummary(const ProbePlan& plan) {
     const auto reason = static_cast<DropReason>(i);
     dropped[std::string(DropReasonName(reason))] = plan.dropped[reason];
   }
-  return {
-      {"probes_total", plan.probes.size()},
-      {"candidates", plan.candidates},
-      {"dropped", dropped},
-      {"advice", PlanAdvice(plan.dropped, static_cast<int>(plan.probes.size()), plan.candidates)},
-      {"coverage_gaps", CoverageGapsJson(plan.coverage_gaps)},
-      {"estimate_s", plan.estimate.Total()},
-      {"tour_gain", plan.TourGain()},
-      {"checkpoint_probes", plan.checkpoint_probes}};
+  return {{"probes_total", plan.probes.size()},
+          {"candidates", plan.candidates},
+          {"dropped", dropped},
+          {"advice", PlanAdvice(plan)},
+          {"coverage_gaps", CoverageGapsJson(plan.coverage_gaps)},
+          {"estimate_s", plan.estimate.Total()},
+          {"tour_gain", plan.TourGain()},
+          {"checkpoint_probes", plan.checkpoint_probes}};
 }
 
 Json PlanSummary(const ProbePlan& plan, const RunConfig& config) {

@@ -8,6 +8,8 @@
 #include <cstdio>
 #include <cstring>
 #include <fstream>
+#include <limits>
+#include <numbers>
 #include <numeric>
 #include <sstream>
 #include <unordered_map>
@@ -703,6 +705,59 @@ MeshReport ValidateAndRepair(TriangleMesh& mesh, const MeshRepairOptions& option
   r.output_vertices = mesh.NumVertices();
   r.output_triangles = mesh.NumTriangles();
   return r;
+}
+
+// ---------------------------------------------------------------------------------------------
+// The base of a closed solid
+
+void BasePlaneOptions::Check() const {
+  auto bad = [](const char* field, double v, const char* rule) {
+    std::ostringstream os;
+    os << "BasePlaneOptions." << field << " " << rule << ", got " << v;
+    throw std::invalid_argument(os.str());
+  };
+  if (!(max_offset >= 0.0) || !std::isfinite(max_offset))
+    bad("max_offset", max_offset, "must be finite and >= 0");
+  if (!(flatness >= 0.0) || !std::isfinite(flatness))
+    bad("flatness", flatness, "must be finite and >= 0");
+  if (!(max_tilt_rad >= 0.0) || !(max_tilt_rad < 0.5 * std::numbers::pi)) {
+    bad("max_tilt_rad", max_tilt_rad, "must be in [0, pi/2)");
+  }
+}
+
+int RemoveBaseFaces(TriangleMesh& mesh, const BasePlaneOptions& options) {
+  options.Check();
+  double z_min = std::numeric_limits<double>::infinity();
+  for (const auto& f : mesh.triangles)
+    for (int k = 0; k < 3; ++k) z_min = std::min(z_min, mesh.vertices[f[k]].z());
+  if (!(std::abs(z_min) <= options.max_offset)) return 0;
+  const double cos_tilt = std::cos(options.max_tilt_rad);
+  std::vector<Eigen::Vector3i> kept;
+  kept.reserve(mesh.triangles.size());
+  for (int t = 0; t < mesh.NumTriangles(); ++t) {
+    const Eigen::Vector3i& f = mesh.triangles[t];
+    bool on_base = -mesh.TriangleNormal(t).z() >= cos_tilt;
+    for (int k = 0; k < 3 && on_base; ++k)
+      on_base = mesh.vertices[f[k]].z() - z_min <= options.flatness;
+    if (!on_base) kept.push_back(f);
+  }
+  const int removed = mesh.NumTriangles() - static_cast<int>(kept.size());
+  if (removed == 0) return 0;
+  mesh.triangles = std::move(kept);
+  std::vector<int> remap(mesh.vertices.size(), -1);
+  for (const auto& f : mesh.triangles)
+    for (int k = 0; k < 3; ++k) remap[f[k]] = 0;
+  std::vector<Eigen::Vector3d> vertices;
+  for (std::size_t i = 0; i < remap.size(); ++i) {
+    if (remap[i] < 0) continue;
+    remap[i] = static_cast<int>(vertices.size());
+    vertices.push_back(mesh.vertices[i]);
+  }
+  for (auto& f : mesh.triangles)
+    for (int k = 0; k < 3; ++k) f[k] = remap[f[k]];
+  mesh.vertices = std::move(vertices);
+  mesh.ComputeVertexNormals();
+  return removed;
 }
 
 // ---------------------------------------------------------------------------------------------

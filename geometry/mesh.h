@@ -134,6 +134,28 @@ struct MeshReport {
 // go into the report.
 MeshReport ValidateAndRepair(TriangleMesh& mesh, const MeshRepairOptions& options = {});
 
+// The flat base of a closed sensor solid (a CAD export of the elastomer, base included). The
+// camera looks up through the base, so the sensor's surface is the solid without it. Units: mm
+// (apply a file's scale first).
+//
+// The base plane is z = z_min, the height of the mesh's lowest vertex, when |z_min| <= max_offset
+// (a base a little off z = 0); otherwise the mesh has no base on the sensor's base plane and has
+// none removed. Base faces: the triangles with all three vertices within `flatness` of z_min and
+// an outward normal within max_tilt_rad of -z (a face the camera, below the base, would see
+// from outside).
+struct BasePlaneOptions {
+  double max_offset = 0.5;                  // mm, >= 0
+  double flatness = 0.01;                   // mm, >= 0
+  double max_tilt_rad = 0.174532925199433;  // 10 deg, in [0, pi/2)
+  // Throws std::invalid_argument naming the field and its value.
+  void Check() const;
+};
+
+// Removes the base faces (BasePlaneOptions) and the vertices that only they used, and recomputes
+// the vertex normals when any face goes (the rim's no longer lean toward -z). Returns the
+// number of triangles removed. Throws only for invalid options.
+int RemoveBaseFaces(TriangleMesh& mesh, const BasePlaneOptions& options = {});
+
 struct MeshLoadOptions {
   // File units -> mm (e.g. 1000 for a file in metres). STL has no units: mm is assumed.
   double scale = 1.0;

@@ -254,23 +254,40 @@ double SolveOffsetZ(const RevolutionProfile& p, double inset, double z, double l
   return 0.5 * (lo + hi);
 }
 
-FinOutline ComputeFinOutline(const FinOptions& o, const RevolutionProfile& p) {
-  o.Check();
+// Walks the inner-wall outline up from the base: the parameter where it reaches top_z (1 when it
+// reaches the tip first), or where it folds (stops rising along z, or meets the axis before the
+// tip): *fold_z is then the height of the fold, else +inf. Above top_z the outline is cut off,
+// so its shape there does not matter.
+double OutlineEnd(const FinOptions& o, const RevolutionProfile& p, double* fold_z) {
   const int n = kTableIntervals;
-  // The offset must stay a graph over z and off the axis (else the inset is too large).
+  *fold_z = std::numeric_limits<double>::infinity();
   Eigen::Vector2d prev = Offset(p, 0.0, o.inset);
   for (int i = 1; i <= n; ++i) {
     const double t = static_cast<double>(i) / n;
+    if (prev.y() >= o.top_z) return t;
     const Eigen::Vector2d q = Offset(p, t, o.inset);
     if (!(q.y() > prev.y()) || (i < n && !(q.x() > 0.0))) {
-      throw std::invalid_argument(
-          "FinOptions.inset = " + Num(o.inset) + " is too large for " + p.Describe() +
-          ": the inner-wall outline folds over near z = " + Num(q.y()) + " mm");
+      *fold_z = q.y();
+      return t;
     }
     prev = q;
   }
+  return 1.0;
+}
+
+FinOutline ComputeFinOutline(const FinOptions& o, const RevolutionProfile& p) {
+  o.Check();
+  // The offset must stay a graph over z and off the axis (else the inset is too large).
+  double fold_z = 0.0;
+  const double t_end = OutlineEnd(o, p, &fold_z);
+  if (std::isfinite(fold_z)) {
+    throw std::invalid_argument("FinOptions.inset = " + Num(o.inset) + " is too large for " +
+                                p.Describe() +
+                                ": the inner-wall outline folds over near z = " + Num(fold_z) +
+                                " mm (a lower [rig.fins] top_z cuts the fins below it)");
+  }
   const double z0 = Offset(p, 0.0, o.inset).y();
-  const double z1 = Offset(p, 1.0, o.inset).y();
+  const double z1 = Offset(p, t_end, o.inset).y();
   const double lo_z = std::max(o.bottom_z, z0);
   const double hi_z = std::min(o.top_z, z1);
   if (!(hi_z > lo_z)) {
@@ -278,9 +295,10 @@ FinOutline ComputeFinOutline(const FinOptions& o, const RevolutionProfile& p) {
                                 Num(o.top_z) + " leave no fin inside " + p.Describe() +
                                 " (inner wall spans z " + Num(z0) + ".." + Num(z1) + ")");
   }
-  const double t_lo = o.bottom_z > z0 ? SolveOffsetZ(p, o.inset, lo_z, 0.0, 1.0) : 0.0;
-  const double t_hi = o.top_z < z1 ? SolveOffsetZ(p, o.inset, hi_z, 0.0, 1.0) : 1.0;
+  const double t_lo = o.bottom_z > z0 ? SolveOffsetZ(p, o.inset, lo_z, 0.0, t_end) : 0.0;
+  const double t_hi = o.top_z < z1 ? SolveOffsetZ(p, o.inset, hi_z, 0.0, t_end) : t_end;
   // Even spacing along the outline's own arc length.
+  const int n = kTableIntervals;
   std::vector<double> ts(n + 1), acc(n + 1, 0.0);
   for (int i = 0; i <= n; ++i) ts[i] = t_lo + (t_hi - t_lo) * i / n;
   for (int i = 1; i <= n; ++i)
@@ -707,17 +725,32 @@ TriangleMesh MakeFins(const FinOptions& options, const RevolutionProfile& profil
   return fins;
 }
 
+double FinFoldZ(const FinOptions& options, const RevolutionProfile& profile) {
+  options.Check();
+  FinOptions whole = options;
+  whole.top_z = std::numeric_limits<double>::infinity();
+  double fold_z = 0.0;
+  OutlineEnd(whole, profile, &fold_z);
+  return fold_z;
+}
+
 double FinHalfWidthAt(const FinOptions& options, const RevolutionProfile& profile, double z) {
   options.Check();
   if (!options.enabled) return 0.0;
   // Same clipping as ComputeFinOutline, without tabulating the whole outline (~100 profile
   // evaluations per call). The fold check is MakeFin's.
   const double z0 = Offset(profile, 0.0, options.inset).y();
-  const double z1 = Offset(profile, 1.0, options.inset).y();
+  double t_end = 1.0;
+  if (options.top_z < profile.Height()) {
+    // Cut below the tip: bisect only below the cut, where the outline is a graph over z.
+    double fold_z = 0.0;
+    t_end = OutlineEnd(options, profile, &fold_z);
+  }
+  const double z1 = Offset(profile, t_end, options.inset).y();
   const double lo_z = std::max(options.bottom_z, z0);
   const double hi_z = std::min(options.top_z, z1);
   if (!(z >= lo_z && z <= hi_z)) return 0.0;
-  const double t = SolveOffsetZ(profile, options.inset, z, 0.0, 1.0);
+  const double t = SolveOffsetZ(profile, options.inset, z, 0.0, t_end);
   return std::max(0.0, Offset(profile, t, options.inset).x());
 }
 

@@ -172,6 +172,10 @@ class Bvh;
 // with the axis hit at the top. For the fins of a sensor given as a mesh. Throws
 // std::invalid_argument if the axis or a wall ray misses the mesh (naming the height).
 SplineOptions FitInscribedProfile(const Bvh& mesh, int samples = 24);
+// The height (mm) where the inner-wall outline (the profile offset inward by options.inset,
+// ignoring top_z) first folds over or meets the axis below the tip, +inf when it never does:
+// fins must be cut (top_z) below it. Throws as FinOptions::Check().
+double FinFoldZ(const FinOptions& options, const RevolutionProfile& profile);
 // Half-width (mm) of a fin at height z: the inner-wall outline's radius there, or 0 outside
 // [bottom_z, top_z] or the outline's span. About 100 profile evaluations (a few microseconds);
 // it does not repeat MakeFin's fold check.

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <limits>
 #include <nlohmann/json.hpp>
 #include <numbers>
@@ -10,6 +11,7 @@
 #include <unordered_map>
 
 #include "base/field_error.h"
+#include "base/format.h"
 #include "base/hash.h"
 #include "geometry/bvh.h"
 #include "geometry/sampling.h"
@@ -69,8 +71,123 @@ std::vector<Eigen::Vector3d> SphereDirections(int n) {
 
 // --- Small types ---------------------------------------------------------------------------------
 
-std::vector<std::string> PlanAdvice(const DropCounts& dropped, int kept, int candidates) {
+namespace {
+
+// Rounded up to 0.1 mm: a setting that is enough, printed with one decimal.
+double UpTenth(double v) {
+  return std::ceil(v * 10.0 - 1e-6) / 10.0;
+}
+
+std::string Fixed1(double v) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.1f", v);
+  return buf;
+}
+
+// For each machine axis the positions the tool can press do not fit in: where to put the sensor
+// and how much travel it takes for all of them to fit. Empty when they all fit.
+std::string TravelNumbers(const PlanReach& reach) {
+  static const char* const kAxis[3] = {"x", "y", "z"};
+  std::string out;
+  for (int a = 0; a < 3; ++a) {
+    const double top = -reach.travel_margin;
+    const double bottom = -reach.max_travel_mm[a] + reach.travel_margin;
+    const double over = reach.machine_max[a] - top;
+    const double under = bottom - reach.machine_min[a];
+    if (over <= 1e-3 && under <= 1e-3) continue;
+    const double span = reach.machine_max[a] - reach.machine_min[a];
+    const double room = top - bottom;
+    const double more = span > room + 1e-3 ? UpTenth(span - room) : 0.0;
+    const std::string axis = kAxis[a];
+    // The daemon's safety envelope ([limits]) follows the travel.
+    auto travel_to = [&](double extra) {
+      const double travel = reach.max_travel_mm[a] + extra;
+      return "[plan.machine] max_travel_mm " + axis + " to " + Fixed1(travel) + " (" +
+             Fixed1(extra) + " mm more; [limits] envelope_min " + axis + " to " + Fixed1(-travel) +
+             ")";
+    };
+    std::string s = "; along " + axis + " the probe's positions reach ";
+    if (over > 1e-3) {
+      const double d = UpTenth(over);
+      s += Fixed1(d) + " mm above the top of the travel: set [rig] base_in_machine " + axis +
+           " to " + Fixed1(reach.base_in_machine[a] - d) + " (" + Fixed1(d) + " mm " +
+           (a == 2 ? std::string("lower") : "toward -" + axis) + ")";
+      if (more > 0.0) {
+        s += " and " + travel_to(more) + ": they span " + Fixed1(span) + " mm, the travel leaves " +
+             Fixed1(room) + " mm";
+      }
+    } else {
+      const double d = UpTenth(under);
+      s += Fixed1(d) + " mm below the bottom of the travel: set " + travel_to(d);
+      if (more == 0.0) {
+        s += " or [rig] base_in_machine " + axis + " to " + Fixed1(reach.base_in_machine[a] + d) +
+             " (" + Fixed1(d) + " mm " + (a == 2 ? std::string("higher") : "toward +" + axis) + ")";
+      }
+    }
+    out += s;
+  }
+  return out;
+}
+
+bool CannotPassOver(const PlanReach* reach) {
+  return reach != nullptr && reach->travel_known &&
+         reach->over_z_machine > -reach->travel_margin + 1e-3;
+}
+
+std::string DropAdvice(DropReason reason, const PlanReach* reach) {
+  switch (reason) {
+    case DropReason::kFov:
+      return "lie outside the camera's field of view: check [rig.camera] (the lens, camera_z) "
+             "and that the sensor ([rig.shape] or its mesh: mm, +z along the finger, base at "
+             "z = 0) is the size and in the place the camera expects";
+    case DropReason::kViewAngle:
+      return "are seen too edge-on from the camera: plan.max_view_angle_rad (75 deg) allows "
+             "more, up to about 85 deg, at some cost in accuracy there";
+    case DropReason::kFin:
+      return "are hidden behind a fin: a sensor without fins needs [rig.fins] enabled = false; "
+             "otherwise check the fins' inset and thickness";
+    case DropReason::kGel:
+      return "are hidden by the sensor's own surface as the camera sees it: check that the "
+             "mesh is in the sensor frame (mm, +z along the finger, its base centred on z = 0) "
+             "and [rig.camera] camera_z";
+    case DropReason::kReach: {
+      std::string what =
+          "cannot be pressed: the ball or the stylus would hit the sensor or its base, or find "
+          "no way out";
+      if (reach == nullptr || reach->stylus_length_needed <= 0.0) {
+        return what +
+               ": check plan.press_depth, plan.travel_clearance and the stylus "
+               "(plan.stylus_radius, stylus_length)";
+      }
+      return what + "; the stylus is too short for the lower part: plan.stylus_length = " +
+             Fixed1(reach->stylus_length_needed) + " (now " + Fixed1(reach->stylus_length) +
+             ", and [rig] tool_offset with it) presses down to z = " +
+             Fixed1(reach->stylus_lowest_z) + " mm";
+    }
+    case DropReason::kTravel: {
+      if (CannotPassOver(reach)) return "lie outside the machine's travel, for the same reason";
+      const std::string numbers =
+          reach != nullptr && reach->travel_known ? TravelNumbers(*reach) : std::string();
+      if (!numbers.empty()) return "lie outside the machine's travel" + numbers;
+      return "lie outside the machine's travel: check where the sensor sits ([rig] "
+             "base_in_machine) and [plan.machine] max_travel_mm";
+    }
+  }
+  return "";
+}
+
+}  // namespace
+
+std::vector<std::string> PlanAdvice(const DropCounts& dropped, int kept, int candidates,
+                                    const PlanReach* reach) {
   std::vector<std::string> advice;
+  // Whatever the plan keeps, a tool that cannot pass over the sensor may find no way to a probe
+  // from where the machine is when the run starts.
+  if (CannotPassOver(reach)) {
+    advice.push_back("The tool cannot pass over the sensor: that takes machine z = " +
+                     Fixed1(reach->over_z_machine) + ", above the top of the travel (" +
+                     Fixed1(-reach->travel_margin) + ")" + TravelNumbers(*reach) + ".");
+  }
   if (candidates <= 0 || 2 * kept >= candidates) return advice;
   std::vector<DropReason> reasons;
   for (int r = 0; r < kNumDropReasons; ++r) {
@@ -80,43 +197,28 @@ std::vector<std::string> PlanAdvice(const DropCounts& dropped, int kept, int can
   std::stable_sort(reasons.begin(), reasons.end(),
                    [&](DropReason a, DropReason b) { return dropped[a] > dropped[b]; });
   for (const DropReason reason : reasons) {
-    std::string what;
-    switch (reason) {
-      case DropReason::kFov:
-        what =
-            "lie outside the camera's field of view: check [rig.camera] (the lens, camera_z) "
-            "and that the sensor ([rig.shape] or its mesh: mm, +z along the finger, base at "
-            "z = 0) is the size and in the place the camera expects";
-        break;
-      case DropReason::kViewAngle:
-        what =
-            "are seen too edge-on from the camera: plan.max_view_angle_rad (75 deg) allows "
-            "more, up to about 85 deg, at some cost in accuracy there";
-        break;
-      case DropReason::kFin:
-        what =
-            "are hidden behind a fin: a sensor without fins needs [rig.fins] enabled = false; "
-            "otherwise check the fins' inset and thickness";
-        break;
-      case DropReason::kGel:
-        what =
-            "are hidden by the sensor's own surface as the camera sees it: check the mesh "
-            "(closed, outward normals, mm) and [rig.camera] camera_z";
-        break;
-      case DropReason::kReach:
-        what =
-            "cannot be pressed: the ball or the stylus would hit the sensor or its base, or "
-            "find no way out: check plan.press_depth, plan.travel_clearance and the stylus "
-            "(plan.stylus_radius, stylus_length)";
-        break;
-      case DropReason::kTravel:
-        what =
-            "lie outside the machine's travel: check where the sensor sits ([rig] "
-            "base_in_machine) and [plan.machine] max_travel_mm";
-        break;
-    }
     advice.push_back(std::to_string(dropped[reason]) + " of " + std::to_string(candidates) +
-                     " candidates " + what + ".");
+                     " candidates " + DropAdvice(reason, reach) + ".");
+  }
+  return advice;
+}
+
+std::vector<std::string> PlanAdvice(const ProbePlan& plan) {
+  const int kept = static_cast<int>(plan.probes.size());
+  std::vector<std::string> advice;
+  // Said of a plan sized in machine time (the rig's own limit), not of a count asked for.
+  if (plan.machine_budget_s > 0.0 && kept > 0 && kept < kProbesForTargets) {
+    advice.push_back(
+        "This rig cannot be expected to meet the accuracy targets: " + std::to_string(kept) +
+        " probes fit in plan.machine_hours = " + FormatFixed(plan.machine_budget_s / 3600.0, 2) +
+        " h at [plan.machine]'s feeds, and the targets take about " +
+        std::to_string(kProbesForTargets) +
+        (2 * kept < plan.candidates
+             ? "; most of the surface cannot be probed (below says why and what to change)."
+             : ". A longer plan.machine_hours or faster feeds give more."));
+  }
+  for (std::string& line : PlanAdvice(plan.dropped, kept, plan.candidates, &plan.reach)) {
+    advice.push_back(std::move(line));
   }
   return advice;
 }
@@ -173,6 +275,9 @@ RigGeometry MakeRigGeometry() {
 
 void PlanOptions::Check() const {
   if (probe_count < 1) BadField("probe_count", probe_count, "must be >= 1");
+  if (!(machine_hours >= 0.0 && machine_hours <= 1000.0)) {
+    BadField("machine_hours", machine_hours, "must be in [0, 1000]");
+  }
   if (checkpoint_probes < 0) BadField("checkpoint_probes", checkpoint_probes, "must be >= 0");
   if (!(candidate_factor >= 1.0)) BadField("candidate_factor", candidate_factor, "must be >= 1");
   RequirePositive("ball_radius", ball_radius);
@@ -598,7 +703,8 @@ ProbePointFilter::Result ProbePointFilter::Classify(const Eigen::Vector3d& point
   res.press_machine = travel_.MachineFromBall(press);
   TravelPlanner::Node node = travel_.MakeNode(res.approach_machine, false);
   if (!node.radial && !node.up) return drop(DropReason::kReach);
-  // Travel limits.
+  // Travel limits (a drop keeps every escape: the plan's reach measures how far out they are).
+  res.node = node;
   if (!travel_.InTravel(res.approach_machine) || !travel_.InTravel(res.press_machine)) {
     return drop(DropReason::kTravel);
   }
@@ -664,8 +770,16 @@ std::vector<PlannedProbe> BuildProbes(const std::vector<int>& order,
                                       const std::vector<Candidate>& kept,
                                       const std::vector<TravelPlanner::Node>& nodes,
                                       const TravelPlanner::Node& start, const TravelPlanner& travel,
-                                      const PlanOptions& options,
+                                      const PlanOptions& options, const ProbePlan& plan,
                                       std::vector<Eigen::Vector3d>* park) {
+  // What would change it (a finger beyond the machine's reach: the tool cannot pass over it).
+  auto why = [&]() {
+    std::string s;
+    for (const std::string& line : PlanAdvice(plan.dropped, 0, plan.candidates, &plan.reach)) {
+      s += (s.empty() ? ". " : " ") + line;
+    }
+    return s;
+  };
   std::vector<PlannedProbe> probes;
   probes.reserve(order.size());
   const TravelPlanner::Node* prev = &start;
@@ -689,7 +803,7 @@ std::vector<PlannedProbe> BuildProbes(const std::vector<int>& order,
                                (prev_index < 0 ? std::string("the start position")
                                                : "probe " + std::to_string(prev_index)) +
                                " to probe " + std::to_string(k) + " (sample " +
-                               std::to_string(c.sample_index) + ")");
+                               std::to_string(c.sample_index) + ")" + why());
     }
     p.travel_machine = route->waypoints;
     probes.push_back(std::move(p));
@@ -702,7 +816,8 @@ std::vector<PlannedProbe> BuildProbes(const std::vector<int>& order,
     if (!route) {
       throw std::runtime_error(
           "MakeProbePlan: no collision-free travel from the last probe back "
-          "to the start position");
+          "to the start position" +
+          why());
     }
     *park = route->waypoints;
     park->push_back(start.machine);
@@ -727,6 +842,8 @@ std::string OptionsHash(const RigGeometry& rig, const PlanOptions& o) {
   }
   for (int i = 0; i < 3; ++i) h.AddDouble(rig.tool_offset[i]);
   h.AddPod(o.probe_count).AddPod(static_cast<int>(o.count_is_kept)).AddPod(o.seed);
+  // Only when set, so that the plans stored before the option keep their hash.
+  if (o.machine_hours > 0.0) h.AddDouble(o.machine_hours);
   for (double v : {o.candidate_factor,
                    o.ball_radius,
                    o.press_depth,
@@ -785,9 +902,104 @@ CoverageTally CoverageFor(const RigGeometry& rig, const PlanOptions& options) {
 
 namespace {
 
+// What PlanReach is measured from: the machine positions of the candidates the tool can press
+// (kept or dropped for travel), and the candidates dropped for reach.
+struct ReachTally {
+  Eigen::AlignedBox3d machine;
+  std::vector<std::pair<Eigen::Vector3d, Eigen::Vector3d>> reach_dropped;  // point, normal
+
+  void Add(const ProbePointFilter::Result& res) {
+    if (res.reason == DropReason::kReach) reach_dropped.emplace_back(res.point, res.normal);
+    if (res.reason && *res.reason != DropReason::kTravel) return;
+    machine.extend(res.approach_machine);
+    machine.extend(res.press_machine);
+    if (res.node.radial) {
+      machine.extend(*res.node.radial);
+    } else if (res.node.up) {
+      machine.extend(*res.node.up);
+    }
+  }
+};
+
+// Which of `points` (point, normal) a stylus of `length` mm reaches: not dropped for reach.
+std::vector<char> StylusReaches(
+    const RigGeometry& rig, const PlanOptions& options, double length,
+    const std::vector<std::pair<Eigen::Vector3d, Eigen::Vector3d>>& points) {
+  PlanOptions o = options;
+  o.stylus_length = length;
+  const ProbePointFilter filter(rig, o);
+  std::vector<char> reaches(points.size());
+  for (std::size_t i = 0; i < points.size(); ++i) {
+    reaches[i] = filter.Classify(points[i].first, points[i].second).reason != DropReason::kReach;
+  }
+  return reaches;
+}
+
+// PlanReach's stylus numbers. A stylus that holds its holder above the sensor's top from any
+// ball above the base presses every candidate that a longer stylus can; the lowest of those are
+// found going up from the lowest candidate dropped for reach, and the shortest stylus that
+// presses them by bisection (a longer stylus only lifts the holder). Each length is a filter of
+// its own, and a long stylus makes a point slow to classify (against a mesh, milliseconds): only
+// a few points are tried.
+void MeasureStylus(const RigGeometry& rig, const PlanOptions& options, const ReachTally& tally,
+                   PlanReach* reach) {
+  constexpr std::size_t kLowest = 8;      // the band the length is found for
+  constexpr std::size_t kMaxTried = 400;  // from the bottom, before giving up
+  reach->stylus_length = options.stylus_length;
+  const double top = std::max(rig.sensor_mesh.Bounds().max().z(), 0.0);
+  const double longest = std::ceil(
+      std::max(options.stylus_length + 1.0, top + options.ball_radius + options.clearance +
+                                                options.travel_clearance + options.escape_margin));
+  auto dropped = tally.reach_dropped;
+  std::stable_sort(dropped.begin(), dropped.end(),
+                   [](const auto& a, const auto& b) { return a.first.z() < b.first.z(); });
+  PlanOptions long_options = options;
+  long_options.stylus_length = longest;
+  const ProbePointFilter long_filter(rig, long_options);
+  std::vector<std::pair<Eigen::Vector3d, Eigen::Vector3d>> lowest;
+  for (std::size_t i = 0; i < dropped.size() && i < kMaxTried; ++i) {
+    const auto& p = dropped[i];
+    if (!lowest.empty() &&
+        (lowest.size() >= kLowest || p.first.z() > lowest.front().first.z() + 1.0)) {
+      break;
+    }
+    if (long_filter.Classify(p.first, p.second).reason != DropReason::kReach) lowest.push_back(p);
+  }
+  if (lowest.empty()) return;
+  double lo = options.stylus_length, hi = longest;  // lo does not press them all, hi does
+  while (hi - lo > 1.0) {
+    const double mid = std::floor(0.5 * (lo + hi));
+    const std::vector<char> r = StylusReaches(rig, options, mid, lowest);
+    (std::count(r.begin(), r.end(), 0) == 0 ? hi : lo) = mid;
+  }
+  reach->stylus_length_needed = hi;
+  reach->stylus_lowest_z = lowest.front().first.z();
+}
+
+void MeasureReach(const RigGeometry& rig, const PlanOptions& options, const ReachTally& tally,
+                  const TravelPlanner& travel, ProbePlan* plan) {
+  PlanReach& reach = plan->reach;
+  if (!tally.machine.isEmpty()) {
+    reach.travel_known = true;
+    reach.machine_min = tally.machine.min();
+    reach.machine_max = tally.machine.max();
+    // The travel between far sides of the sensor and from the start passes over it.
+    reach.over_z_machine = travel.OverZMachine();
+    reach.machine_max.z() = std::max(reach.machine_max.z(), reach.over_z_machine);
+    reach.max_travel_mm = options.machine.max_travel_mm;
+    reach.travel_margin = options.travel_limit_margin;
+    reach.base_in_machine = rig.machine_from_sensor.translation;
+  }
+  // Only when the advice would say it (it takes a few filters of its own).
+  const int kept = plan->candidates - plan->dropped.Total();
+  if (10 * plan->dropped[DropReason::kReach] >= plan->candidates && 2 * kept < plan->candidates) {
+    MeasureStylus(rig, options, tally, &reach);
+  }
+}
+
 // The blue-noise candidates through the filters: the kept ones with their travel nodes, and the
-// plan's candidate count, drop counts and coverage gaps. Throws std::runtime_error when none is
-// kept, with what would change that.
+// plan's candidate count, drop counts, coverage gaps and reach. Throws std::runtime_error when
+// none is kept, with what would change that.
 void SampleCandidates(const RigGeometry& rig, const PlanOptions& options,
                       const ProbePointFilter& filter, ProbePlan* plan_out,
                       std::vector<Candidate>* kept_out,
@@ -796,9 +1008,13 @@ void SampleCandidates(const RigGeometry& rig, const PlanOptions& options,
   std::vector<Candidate>& kept = *kept_out;
   std::vector<TravelPlanner::Node>& nodes = *nodes_out;
   CoverageTally coverage = CoverageFor(rig, options);
+  ReachTally reach;
   auto add = [&](const SurfaceSample& s, bool count_drops) {
     auto res = filter.Classify(s.point, s.normal);
-    if (count_drops) coverage.Add(s.point, res.reason);
+    if (count_drops) {
+      coverage.Add(s.point, res.reason);
+      reach.Add(res);
+    }
     if (res.reason) {
       if (count_drops) ++plan.dropped[*res.reason];
       return;
@@ -822,6 +1038,7 @@ void SampleCandidates(const RigGeometry& rig, const PlanOptions& options,
       ++plan.candidates;
       const auto res = filter.Classify(s.point, s.normal);
       coverage.Add(s.point, res.reason);
+      reach.Add(res);
       if (res.reason) ++plan.dropped[*res.reason];
       return !res.reason.has_value();
     });
@@ -832,6 +1049,7 @@ void SampleCandidates(const RigGeometry& rig, const PlanOptions& options,
     for (const SurfaceSample& s : samples) add(s, true);
   }
   plan.coverage_gaps = coverage.Gaps();
+  MeasureReach(rig, options, reach, filter.travel(), &plan);
   if (kept.empty()) {
     std::ostringstream os;
     os << "MakeProbePlan: no probe point survives the filters (" << plan.candidates
@@ -840,7 +1058,7 @@ void SampleCandidates(const RigGeometry& rig, const PlanOptions& options,
       os << " " << DropReasonName(static_cast<DropReason>(r)) << " " << plan.dropped.counts[r];
     }
     os << ")";
-    for (const std::string& line : PlanAdvice(plan.dropped, 0, plan.candidates)) os << " " << line;
+    for (const std::string& line : PlanAdvice(plan)) os << " " << line;
     throw std::runtime_error(os.str());
   }
 }
@@ -863,7 +1081,7 @@ std::vector<int> TourOrder(const std::vector<Candidate>& kept, const PlanOptions
     nn_only.optimise = false;
     const TourResult nn = SolveTour(positions, options.start_machine, time, lower, nn_only);
     std::vector<Eigen::Vector3d> nn_park;
-    const auto probes = BuildProbes(nn.order, kept, nodes, start, travel, options, &nn_park);
+    const auto probes = BuildProbes(nn.order, kept, nodes, start, travel, options, *plan, &nn_park);
     plan->nearest_neighbour_s = EstimatePlan(probes, nn_park, options).Total();
   }
   return tour.order;
@@ -902,10 +1120,11 @@ std::vector<int> RoundsOrder(const std::vector<Candidate>& kept, const PlanOptio
 
 }  // namespace
 
-ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
+namespace {
+
+// The plan for exactly options.probe_count candidates (options.machine_hours ignored).
+ProbePlan PlanForCandidates(const RigGeometry& rig, const PlanOptions& options) {
   const auto t0 = std::chrono::steady_clock::now();
-  options.Check();
-  rig.Check();
   const ProbePointFilter filter(rig, options);
   const TravelPlanner& travel = filter.travel();
 
@@ -925,7 +1144,7 @@ ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
   for (int i = 0; i < n; ++i) sampling[i] = i;
   std::vector<Eigen::Vector3d> park;
   {
-    const auto probes = BuildProbes(sampling, kept, nodes, start, travel, options, &park);
+    const auto probes = BuildProbes(sampling, kept, nodes, start, travel, options, plan, &park);
     plan.sampling_order_estimate = EstimatePlan(probes, park, options);
   }
 
@@ -943,7 +1162,7 @@ ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
     order = TourOrder(kept, options, tour_options, &cache, nodes, start, travel, &plan);
   }
 
-  plan.probes = BuildProbes(order, kept, nodes, start, travel, options, &park);
+  plan.probes = BuildProbes(order, kept, nodes, start, travel, options, plan, &park);
   plan.park_machine = park;
   plan.estimate = EstimatePlan(plan.probes, plan.park_machine, options);
   if (!options.optimise_order || options.checkpoint_probes > 0) {
@@ -953,7 +1172,7 @@ ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
   // unless the rounds are asked for: they are worth their time.
   if (options.checkpoint_probes == 0 &&
       plan.estimate.Total() > plan.sampling_order_estimate.Total()) {
-    plan.probes = BuildProbes(sampling, kept, nodes, start, travel, options, &park);
+    plan.probes = BuildProbes(sampling, kept, nodes, start, travel, options, plan, &park);
     plan.park_machine = park;
     plan.estimate = plan.sampling_order_estimate;
   }
@@ -965,6 +1184,49 @@ ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
   plan.planning_seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return plan;
+}
+
+// The plan sized to options.machine_hours: the machine time grows about in proportion to the
+// candidates drawn (the probes kept are a fixed share of them, the tour's legs shorten slowly),
+// so each draw scales the count by budget / estimate, aiming a little short, until the estimate
+// lands in [90 %, 100 %] of the budget. Every draw is a whole plan: blue noise over the surface
+// at that density, not a cut of a longer tour.
+ProbePlan PlanForMachineTime(const RigGeometry& rig, const PlanOptions& options) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const double budget_s = options.machine_hours * 3600.0;
+  const double max_count = 8.0 * options.probe_count;
+  PlanOptions o = options;
+  o.machine_hours = 0.0;
+  ProbePlan plan = PlanForCandidates(rig, o);
+  for (int draw = 0; draw < 6; ++draw) {
+    const double total = std::max(plan.estimate.Total(), 1.0);
+    const bool short_of_it = total < 0.9 * budget_s && o.probe_count < max_count;
+    if (!short_of_it && total <= budget_s) break;
+    const double count = std::clamp(o.probe_count * 0.97 * budget_s / total, 1.0, max_count);
+    const int next = static_cast<int>(std::floor(count));
+    if (next == o.probe_count) break;
+    o.probe_count = next;
+    plan = PlanForCandidates(rig, o);
+  }
+  // Still over (a plan that barely shrinks per candidate): the candidates that fit, at most.
+  while (plan.estimate.Total() > budget_s && o.probe_count > 1) {
+    o.probe_count = std::max(1, static_cast<int>(o.probe_count * 0.95));
+    plan = PlanForCandidates(rig, o);
+  }
+  plan.options_hash = OptionsHash(rig, options);
+  plan.machine_budget_s = budget_s;
+  plan.planning_seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return plan;
+}
+
+}  // namespace
+
+ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options) {
+  options.Check();
+  rig.Check();
+  return options.machine_hours > 0.0 ? PlanForMachineTime(rig, options)
+                                     : PlanForCandidates(rig, options);
 }
 
 // --- Estimate ------------------------------------------------------------------------------------
@@ -1117,6 +1379,7 @@ nlohmann::json PlanSummaryJson(const ProbePlan& plan, const PlanOptions& options
       {"kept", plan.probes.size()},
       {"dropped", drops},
       {"dropped_total", plan.dropped.Total()},
+      {"advice", PlanAdvice(plan)},
       {"coverage_gaps", CoverageGapsJson(plan.coverage_gaps)},
       {"waypoints", plan.waypoints},
       {"detoured_moves", plan.detoured_moves},

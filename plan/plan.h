@@ -97,6 +97,14 @@ struct PlanOptions {
   // (docs/benchmarks.md, "Run time against error"): the fewest at which the cylinder and the cone
   // meet every accuracy target with margin, about an hour of machine time at the default feeds.
   int probe_count = 2700;
+  // > 0: the plan is sized in machine time rather than in candidates: it keeps as many probes as
+  // fit in this many hours of estimated machine time (between 90 % and 100 % of it, unless even
+  // 8 x probe_count candidates fall short), drawing probe_count x budget / estimate candidates
+  // again until it does; probe_count is then only the first draw. 0: exactly probe_count
+  // candidates (the default here; gs360d's configuration defaults to kDefaultMachineHours). An
+  // explicit probe count (a request's "probes", a [plan] probe_count without machine_hours)
+  // reads as 0 (daemon/run_config.h).
+  double machine_hours = 0.0;
   // If true, probe_count counts KEPT probes: the blue-noise sampler draws candidates only where
   // every filter passes (drop counts then count rejected candidate draws).
   bool count_is_kept = false;
@@ -174,11 +182,43 @@ struct PlanOptions {
   void Check() const;
 };
 
-// When a plan keeps little (under half its candidates, or none), what to change for each reason
-// that dropped at least a tenth of them, most frequent first: one sentence each, naming the
-// config key ("[rig.fins] enabled = false", "[plan.machine] max_travel_mm", ...). Empty when the
-// plan keeps at least half. `kept` and `candidates` as in ProbePlan.
-std::vector<std::string> PlanAdvice(const DropCounts& dropped, int kept, int candidates);
+// What would bring more of the surface within the probe's reach, measured by MakeProbePlan on
+// the plan's own geometry (not stored with a plan: PlanFromJson leaves it empty).
+struct PlanReach {
+  // Travel (set when the tool can press any candidate): the machine-position bounds of every
+  // candidate the tool can press, kept or dropped for travel (its approach, its press and its
+  // escape: radial if it has one, else up), and of the plane over the sensor's top that travel
+  // passes over it at (over_z_machine, TravelPlanner::OverZMachine); the travel they must fit
+  // in, [-max_travel_mm + travel_margin, -travel_margin] per axis; and where the sensor's base
+  // sits (machine frame).
+  bool travel_known = false;
+  Eigen::Vector3d machine_min = Eigen::Vector3d::Zero();
+  Eigen::Vector3d machine_max = Eigen::Vector3d::Zero();
+  double over_z_machine = 0.0;
+  Eigen::Vector3d max_travel_mm = Eigen::Vector3d::Zero();
+  double travel_margin = 0.0;
+  Eigen::Vector3d base_in_machine = Eigen::Vector3d::Zero();
+  // Stylus (measured when PlanAdvice would speak of reach: a tenth of the candidates or more
+  // dropped for reach, under half kept): of the candidates dropped for reach that a longer stylus
+  // would press, the lowest (at z = stylus_lowest_z, sensor frame; looked for among the lowest
+  // 400 dropped) and the few above it within 1 mm; the shortest stylus_length, in whole mm, that
+  // presses them all. 0: not measured, or no longer stylus would press any.
+  double stylus_length = 0.0;  // the plan's
+  double stylus_length_needed = 0.0;
+  double stylus_lowest_z = 0.0;
+};
+
+// What to change when a plan keeps little (under half its candidates, or none): for each reason
+// that dropped at least a tenth of them, most frequent first, one sentence naming the config key
+// ("[rig.fins] enabled = false", "[plan.machine] max_travel_mm", ...). Empty when the plan keeps
+// at least half, except that a finger beyond the machine's Z reach (the tool cannot pass over it,
+// reach.over_z_machine above the travel) is always said first: the run could find no way to a
+// probe. `kept` and `candidates` as in ProbePlan. With `reach`, the travel and reach sentences say
+// by how much: where to put [rig] base_in_machine and [plan.machine] max_travel_mm so that every
+// position fits (rounded up to 0.1 mm), and the stylus_length that presses the lowest
+// candidates dropped for reach.
+std::vector<std::string> PlanAdvice(const DropCounts& dropped, int kept, int candidates,
+                                    const PlanReach* reach = nullptr);
 
 struct PlannedProbe {
   int plan_index = 0;    // position in the run order
@@ -217,12 +257,14 @@ struct ProbePlan {
   DropCounts dropped;
   // Parts of the surface with candidates and no probe (plan/coverage.h), most candidates first.
   std::vector<CoverageGap> coverage_gaps;
+  PlanReach reach;
   int checkpoint_probes = 0;                  // the options' rounds (0: one tour)
   int waypoints = 0;                          // total travel waypoints in the run order
   int detoured_moves = 0;                     // travels that needed waypoints
   std::vector<Eigen::Vector3d> park_machine;  // waypoints + final position back to the start
   Eigen::Vector3d start_machine = Eigen::Vector3d::Zero();
   PlanEstimate estimate;                 // the run order
+  double machine_budget_s = 0.0;         // PlanOptions::machine_hours in s (0: not sized by time)
   PlanEstimate sampling_order_estimate;  // the same probes in sampling order
   double nearest_neighbour_s = 0.0;      // total estimate after the nearest-neighbour tour only
   double planning_seconds = 0.0;         // wall time of MakeProbePlan
@@ -231,9 +273,17 @@ struct ProbePlan {
   double TourGain() const;
 };
 
+// PlanAdvice for this plan, with its reach; first, for a plan sized in machine time that presses
+// fewer than kProbesForTargets probes, that the rig cannot be expected to meet the accuracy
+// targets, and why (its machine-time budget, or how much of the surface the filters leave).
+std::vector<std::string> PlanAdvice(const ProbePlan& plan);
+// Probes below which the calibration misses its accuracy targets on the virtual rig
+// (docs/benchmarks.md, "Run time against error" and "Held-out rigs").
+inline constexpr int kProbesForTargets = 1000;
+
 // Plans the run. Throws std::invalid_argument for invalid options or rig, std::runtime_error
-// when no point survives the filters or no collision-free travel exists between two probes
-// (naming them).
+// when no point survives the filters (with PlanAdvice's sentences) or no collision-free travel
+// exists between two probes (naming them).
 ProbePlan MakeProbePlan(const RigGeometry& rig, const PlanOptions& options);
 
 // The machine-time estimate of `probes` in the given order, from options.start_machine, with
@@ -381,7 +431,9 @@ class ProbePointFilter {
     // Machine positions (valid when kept).
     Eigen::Vector3d approach_machine = Eigen::Vector3d::Zero();
     Eigen::Vector3d press_machine = Eigen::Vector3d::Zero();
-    TravelPlanner::Node node;  // the approach position's clearance and escapes (when kept)
+    // The approach position's clearance and escapes: when kept, the escapes inside the travel;
+    // when dropped for travel, all of them.
+    TravelPlanner::Node node;
   };
   // `point` on the sensor surface with outward unit `normal` (sensor frame).
   Result Classify(const Eigen::Vector3d& point, const Eigen::Vector3d& normal) const;
@@ -401,8 +453,8 @@ class ProbePointFilter {
   double cos_contact_ = 0.0;
 };
 
-// JSON summary: counts, drops per reason, coverage gaps, waypoints, estimate (s, h, shares),
-// sampling-order estimate, tour gain, planning time, key options and machine settings.
+// JSON summary: counts, drops per reason, advice, coverage gaps, waypoints, estimate (s, h,
+// shares), sampling-order estimate, tour gain, planning time, key options and machine settings.
 nlohmann::json PlanSummaryJson(const ProbePlan& plan, const PlanOptions& options);
 // The gaps as an array of CoverageGap::ToJson() (the summary's "coverage_gaps").
 nlohmann::json CoverageGapsJson(const std::vector<CoverageGap>& gaps);

@@ -1,5 +1,7 @@
 #include "rig/rig_shape.h"
 
+#include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <limits>
 #include <string>
@@ -46,12 +48,27 @@ RigShape BuildRigShape(const RigConfig& rig, const MeshLoadOptions& load) {
     scaled.scale *= rig.mesh_scale;
     out.gel = LoadMesh(rig.mesh_path, scaled);
     CheckFingerSize(out.gel, rig);
+    out.base_faces_removed = RemoveBaseFaces(out.gel);
+    if (out.gel.Empty()) {
+      throw MeshError(rig.mesh_path +
+                      ": the sensor mesh is only a flat base on the plane z = 0, with no finger "
+                      "above it (+z must point along the finger)");
+    }
     if (!out.gel.HasNormals()) out.gel.ComputeVertexNormals();
     // The fins follow the inner wall; for a mesh, a profile inscribed in it.
     const Bvh bvh(out.gel);
     out.profile = MakeSplineProfile(FitInscribedProfile(bvh, 24));
   }
-  out.fins = MakeFins(rig.fins, *out.profile);
+  out.fin_options = rig.fins;
+  if (!out.profile_is_exact && out.fin_options.enabled) {
+    // A profile inscribed in a finger that is not round (a bent tip) narrows faster than any
+    // board could follow: the boards end a millimetre below where their outline would fold.
+    const double fold_z = FinFoldZ(out.fin_options, *out.profile);
+    if (std::isfinite(fold_z)) {
+      out.fin_options.top_z = std::min(out.fin_options.top_z, fold_z - kFinFoldMarginMm);
+    }
+  }
+  out.fins = MakeFins(out.fin_options, *out.profile);
   return out;
 }
 

@@ -5,6 +5,12 @@
 //
 // Frame: sensor (mm). Throws MeshError (geometry/mesh.h) for a mesh file that cannot be used,
 // std::invalid_argument for an invalid RigConfig or fins that do not fit the shape.
+//
+// A mesh file may be the open sensing surface or a closed solid with its flat base (a CAD export
+// of the elastomer): the base's faces, on the base plane z = 0 after rig.mesh_scale
+// (geometry/mesh.h RemoveBaseFaces, its default tolerances), are dropped, so that both give the
+// same gel. The camera looks up through the base: the base neither hides the gel nor is surface
+// to probe, for the planner and the virtual rig alike.
 
 #include <memory>
 
@@ -21,7 +27,14 @@ struct RigShape {
   std::shared_ptr<const RevolutionProfile> profile;
   bool profile_is_exact = false;  // true for a built-in shape
   TriangleMesh fins;              // both fins: triangles [0, n/2) xz (red), [n/2, n) yz (green)
+  // The fins as built: rig.fins, except that for a mesh whose inscribed profile narrows too fast
+  // for the boards (their inner-wall outline would fold, FinFoldZ) top_z is lowered to
+  // kFinFoldMarginMm below the fold. The LEDs are laid out on these.
+  FinOptions fin_options;
+  int base_faces_removed = 0;  // a mesh's base faces dropped (0 for an open surface)
 };
+
+inline constexpr double kFinFoldMarginMm = 1.0;
 
 RigShape BuildRigShape(const RigConfig& rig, const MeshLoadOptions& load = {});
 

@@ -73,6 +73,7 @@ SimRig::SimRig(const SimRigOptions& options) : options_(options) {
   profile_ = std::move(shape.profile);
   gel_bvh_ = std::make_unique<Bvh>(std::move(shape.gel));
   fin_bvh_ = std::make_unique<Bvh>(std::move(shape.fins));
+  fin_options_ = shape.fin_options;
 
   // True camera: the nominal one perturbed by fixed magnitudes in seeded directions.
   SimRandom rng(MixSeed(options_.seed, 0x7472756563616dull));  // "truecam"

@@ -54,8 +54,9 @@ struct TruePerturbationOptions {
 
 struct SimRigOptions {
   // The rig as its user describes it (rig/rig_config.h): gel surface (built-in shape, or a mesh
-  // in the sensor frame, closed except at the base opening z = 0), LED fins, NOMINAL camera and
-  // mount. Production code is given exactly these values.
+  // in the sensor frame, closed except at the base opening z = 0 or a closed solid whose base
+  // is dropped: rig/rig_shape.h), LED fins, NOMINAL camera and mount. Production code is given
+  // exactly these values.
   RigConfig rig;
   MeshLoadOptions mesh_load;  // for rig.mesh_path
   TruePerturbationOptions perturbation;
@@ -85,6 +86,8 @@ class SimRig {
   // The surface of revolution the fins and LEDs are laid out on: the built-in profile, or the one
   // fitted inside a loaded mesh.
   const RevolutionProfile& profile() const { return *profile_; }
+  // The fins as built (rig/rig_shape.h RigShape::fin_options): the LEDs are laid out on them.
+  const FinOptions& fin_options() const { return fin_options_; }
   std::shared_ptr<const RevolutionProfile> profile_ptr() const { return profile_; }
   // "cylinder", "cone", "spline" or the mesh path.
   std::string Describe() const;
@@ -108,6 +111,7 @@ class SimRig {
   std::shared_ptr<const RevolutionProfile> profile_;
   std::unique_ptr<Bvh> gel_bvh_;
   std::unique_ptr<Bvh> fin_bvh_;
+  FinOptions fin_options_;
   FisheyeIntrinsics true_intrinsics_;
   Rigid3d true_cam_from_sensor_;
 };

@@ -227,8 +227,7 @@ TactileCamera::TactileCamera(std::shared_ptr<const SimRig> rig, const TactileCam
     : rig_(std::move(rig)), options_(options) {
   if (!rig_) throw std::invalid_argument("TactileCamera: rig is null");
   options_.Check();
-  lighting_ =
-      std::make_unique<Lighting>(options_.lighting, rig_->profile(), rig_->options().rig.fins);
+  lighting_ = std::make_unique<Lighting>(options_.lighting, rig_->profile(), rig_->fin_options());
   patch_builder_ = std::make_unique<GelPatchBuilder>(rig_->gel_mesh(), options_.gel);
   GelDeformationOptions rigid = GelDeformationOptions::Rigid();
   rigid.max_edge = options_.gel.max_edge;

@@ -448,3 +448,73 @@ TEST_CASE("TriangleMesh hash, bounds, area, transform and append", "[mesh]") {
   CHECK(two.SignedVolume() == Approx(16.0));
   CHECK(two.normals.empty());  // cube had none
 }
+
+namespace {
+
+// SmallFinger closed by its base: a fan from a centre vertex (or from rim vertex 0), facing -z.
+TriangleMesh ClosedFinger(bool centre_fan) {
+  TriangleMesh m = SmallFinger();
+  const int segments = 24;  // rim vertices 0..23, counter-clockwise seen from +z
+  if (centre_fan) {
+    m.vertices.emplace_back(0.0, 0.0, 0.0);
+    const int c = m.NumVertices() - 1;
+    for (int k = 0; k < segments; ++k) m.triangles.emplace_back(c, (k + 1) % segments, k);
+  } else {
+    for (int k = 1; k + 1 < segments; ++k) m.triangles.emplace_back(0, k + 1, k);
+  }
+  m.normals.clear();
+  return m;
+}
+
+}  // namespace
+
+TEST_CASE("RemoveBaseFaces drops a closed solid's flat base and nothing else", "[mesh]") {
+  const TriangleMesh open = SmallFinger();
+  SECTION("a fan from a centre vertex, or from the rim") {
+    for (const bool centre : {true, false}) {
+      TriangleMesh m = ClosedFinger(centre);
+      REQUIRE(ValidateAndRepair(m).boundary_edges == 0);  // watertight
+      CHECK(gs360::RemoveBaseFaces(m) == (centre ? 24 : 22));
+      CHECK(m.NumTriangles() == open.NumTriangles());
+      CHECK(m.NumVertices() == open.NumVertices());  // the centre vertex went too
+      CHECK(m.Area() == Approx(open.Area()));
+      CHECK(m.HasNormals());
+      // The rim's normals are the wall's again (horizontal), not tilted toward the base.
+      for (int i = 0; i < 24; ++i) CHECK(std::abs(m.normals[i].z()) < 1e-9);
+      CHECK(ValidateAndRepair(m).ClosedExceptBase());
+    }
+  }
+  SECTION("an open surface, and faces that are not the base, are kept") {
+    TriangleMesh m = open;
+    CHECK(gs360::RemoveBaseFaces(m) == 0);
+    CHECK(m.Hash() == open.Hash());
+    // A cube standing on z = 0 loses its bottom only (its top faces +z, its sides are vertical).
+    TriangleMesh cube = Cube(2.0);
+    CHECK(gs360::RemoveBaseFaces(cube) == 2);
+    for (int t = 0; t < cube.NumTriangles(); ++t) CHECK(cube.TriangleNormal(t).z() > -0.5);
+  }
+  SECTION("a base a little off z = 0 is still the base; one far from it is not") {
+    for (const double dz : {-0.3, 0.004, 0.45}) {
+      TriangleMesh m = ClosedFinger(true);
+      for (auto& v : m.vertices) v.z() += dz;
+      INFO("base at z = " << dz);
+      CHECK(gs360::RemoveBaseFaces(m) == 24);
+    }
+    TriangleMesh high = ClosedFinger(true);
+    for (auto& v : high.vertices) v.z() += 0.8;
+    CHECK(gs360::RemoveBaseFaces(high) == 0);
+    // A base that is not flat keeps the faces that leave the plane.
+    TriangleMesh dented = ClosedFinger(true);
+    dented.vertices.back().z() = 0.3;  // the centre: every fan triangle leaves the plane
+    CHECK(gs360::RemoveBaseFaces(dented) == 0);
+  }
+  SECTION("options are checked, naming the field") {
+    gs360::BasePlaneOptions o;
+    o.flatness = -1.0;
+    TriangleMesh m = open;
+    CHECK_THROWS_WITH(gs360::RemoveBaseFaces(m, o), Catch::Contains("flatness"));
+    o = gs360::BasePlaneOptions{};
+    o.max_tilt_rad = 2.0;
+    CHECK_THROWS_WITH(o.Check(), Catch::Contains("max_tilt_rad") && Catch::Contains("2"));
+  }
+}

@@ -295,3 +295,25 @@ TEST_CASE("FitInscribedProfile recovers a built-in profile from its mesh", "[sha
   CHECK_THROWS_AS(gs360::FitInscribedProfile(gs360::Bvh(gs360::TriangleMesh{}), 24),
                   std::invalid_argument);
 }
+
+TEST_CASE("Fins end below where their outline would fold; cut there they build", "[shapes]") {
+  FinOptions o;  // inset 1.5
+  const auto cylinder = MakeCylinderCapProfile({});
+  CHECK(std::isinf(FinFoldZ(o, *cylinder)));
+  // A tip that narrows by 3.6 mm over the last 3 mm: the 1.5 mm inset folds there.
+  SplineOptions knee;
+  knee.control_points = {{0.0, 10.0}, {20.0, 9.5}, {40.0, 8.0}, {54.0, 5.5}, {56.8, 3.7},
+                         {57.5, 2.4}, {58.0, 1.2}, {58.3, 0.3}, {58.4, 0.0}};
+  const auto folded = MakeSplineProfile(knee);
+  const double fold_z = FinFoldZ(o, *folded);
+  REQUIRE(std::isfinite(fold_z));
+  CHECK(fold_z > 40.0);
+  CHECK(fold_z < 58.4);
+  CHECK_THROWS_WITH(MakeFins(o, *folded),
+                    Catch::Contains("folds over") && Catch::Contains("top_z"));
+  o.top_z = fold_z - 1.0;
+  const TriangleMesh fins = MakeFins(o, *folded);
+  CHECK(fins.Bounds().max().z() == Approx(fold_z - 1.0));
+  CHECK(FinHalfWidthAt(o, *folded, fold_z - 2.0) > 0.0);
+  CHECK(FinHalfWidthAt(o, *folded, fold_z - 0.5) == 0.0);
+}
