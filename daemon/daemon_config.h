@@ -53,6 +53,15 @@ struct CalibrationDefaults {
   void Check() const;
 };
 
+// A run's plan, unless its configuration or request says otherwise: about an hour of machine
+// time on any rig.
+inline constexpr double kDefaultMachineHours = 1.0;
+inline RunConfig DefaultDaemonRun() {
+  RunConfig run;
+  run.plan.machine_hours = kDefaultMachineHours;
+  return run;
+}
+
 struct DaemonConfig {
   std::filesystem::path data_dir = "gs360-data";  // database, logs, meshes, models
   ServerConfig server;
@@ -60,8 +69,9 @@ struct DaemonConfig {
   SafetyLimits limits;
   CalibrationDefaults calibration;
   // The rig, machine, camera, engine and plan defaults of every run (machine.uri and camera.uri
-  // may stay empty: the daemon then serves its data but refuses to start runs).
-  RunConfig run;
+  // may stay empty: the daemon then serves its data but refuses to start runs). Its plan is
+  // sized in machine time (plan.machine_hours = kDefaultMachineHours) unless a count is given.
+  RunConfig run = DefaultDaemonRun();
   // Throws ConfigError naming the key (no file line: for values changed after loading).
   void Check() const;
   // The path of the run database inside data_dir.

@@ -31,6 +31,7 @@ struct PlanDoubleField {
 };
 constexpr PlanDoubleField kPlanDoubles[] = {
     {"candidate_factor", &PlanOptions::candidate_factor, {1.0, 100.0}},
+    {"machine_hours", &PlanOptions::machine_hours, {0.0, 1000.0, false, "h"}},
     {"ball_radius", &PlanOptions::ball_radius, {0.0, 50.0, true, "mm"}},
     {"press_depth", &PlanOptions::press_depth, {0.0, 10.0, true, "mm"}},
     {"clearance", &PlanOptions::clearance, {0.0, 100.0, true, "mm"}},
@@ -101,13 +102,18 @@ static void ReadMachineSettings(JsonReader& r, MachineSettings& m) {
 }
 
 void ReadProbeCount(JsonReader& r, const char* key, PlanOptions& p) {
+  if (r.Raw(key) == nullptr) return;
   r.Get(key, p.probe_count, kProbeCountRange);
+  p.machine_hours = 0.0;  // a count asked for is the count planned
 }
 
 void ReadPlanOptions(JsonReader& r, PlanOptions& p, bool machine) {
   if (machine) r.Object("machine", [&](JsonReader& o) { ReadMachineSettings(o, p.machine); });
   for (const auto& f : kPlanDoubles) r.Get(f.name, p.*(f.member), f.range);
   for (const auto& f : kPlanInts) r.Get(f.name, p.*(f.member), f.range);
+  // A probe count without machine_hours is the count planned; a configuration stored before
+  // the option existed reads the same way, so its plan and hash stay what they were.
+  if (r.Raw("probe_count") != nullptr && r.Raw("machine_hours") == nullptr) p.machine_hours = 0.0;
   if (p.probe_count * p.candidate_factor > kMaxCandidates) {
     r.Fail("candidate_factor",
            "probe_count x candidate_factor (the candidates drawn) must be at "

@@ -5,6 +5,7 @@
 #include <nlohmann/json.hpp>
 
 #include "base/json_reader.h"
+#include "daemon/daemon_config.h"
 #include "daemon/run_config.h"
 #include "rig_fixture.h"
 
@@ -61,4 +62,58 @@ TEST_CASE("malformed configs name the file, the line and the field", "[daemon][c
   CHECK_THROWS_WITH(LoadRunConfigFile((dir / "missing.json").string()),
                     Catch::Contains("missing.json") && Catch::Contains("cannot open"));
   std::filesystem::remove_all(dir);
+}
+
+TEST_CASE("a probe count given is the count planned; machine_hours sizes the rest",
+          "[daemon][config]") {
+  // gs360d's default: sized in machine time.
+  CHECK(DaemonConfig{}.run.plan.machine_hours == kDefaultMachineHours);
+  const auto read = [](const nlohmann::json& plan) {
+    PlanOptions p = DefaultDaemonRun().plan;
+    JsonReader r(plan, "mem", "plan");
+    ReadPlanOptions(r, p);
+    return p;
+  };
+  CHECK(read({{"press_depth", 0.8}}).machine_hours == kDefaultMachineHours);
+  CHECK(read({{"probe_count", 500}}).machine_hours == 0.0);
+  CHECK(read({{"probe_count", 500}, {"machine_hours", 2.0}}).machine_hours == 2.0);
+  CHECK(read({{"machine_hours", 0.5}}).machine_hours == 0.5);
+  // A request's "probes" is an explicit count.
+  PlanOptions p = DefaultDaemonRun().plan;
+  const nlohmann::json request = {{"probes", 300}};
+  JsonReader r(request, "request", "");
+  ReadProbeCount(r, "probes", p);
+  CHECK(p.probe_count == 300);
+  CHECK(p.machine_hours == 0.0);
+  // A run stored before the option (probe_count, no machine_hours) plans and hashes as it did.
+  RunConfig stored;
+  stored.machine.uri = "/dev/ttyUSB0";
+  stored.camera.uri = "v4l2:/dev/video0";
+  nlohmann::json j = RunConfigToJson(stored);
+  j["plan"].erase("machine_hours");
+  CHECK(RunConfigFromJson(j, "stored").plan.machine_hours == 0.0);
+  // Out of range: named.
+  CHECK_THROWS_WITH(read({{"machine_hours", -1.0}}), Catch::Contains("machine_hours"));
+}
+
+TEST_CASE("the impression check: derived by default, a user's threshold, an older run's contrast",
+          "[daemon][config]") {
+  RunConfig c;
+  c.machine.uri = "/dev/ttyUSB0";
+  c.camera.uri = "libcamera:0";
+  nlohmann::json j = RunConfigToJson(c);
+  CHECK(j["engine"]["impression_min_snr"] == 0.0);
+  CHECK_FALSE(j["engine"].contains("impression_min_contrast"));
+  j["engine"]["impression_min_snr"] = 12.5;
+  CHECK(RunConfigFromJson(j, "mem").engine.impression_min_snr == 12.5);
+  // A run stored before the signal-to-noise check resumes with the contrast it started with.
+  j["engine"]["impression_min_contrast"] = 1.4;
+  const RunConfig older = RunConfigFromJson(j, "mem");
+  CHECK(older.engine.impression_min_contrast == 1.4);
+  CHECK(RunConfigToJson(older)["engine"]["impression_min_contrast"] == 1.4);
+  j["engine"]["impression_min_contrast"] = 0.5;
+  CHECK_THROWS_WITH(RunConfigFromJson(j, "mem"), Catch::Contains("engine.impression_min_contrast"));
+  j["engine"]["impression_min_contrast"] = 0.0;
+  j["engine"]["impression_min_snr"] = -1.0;
+  CHECK_THROWS_WITH(RunConfigFromJson(j, "mem"), Catch::Contains("engine.impression_min_snr"));
 }
