@@ -303,7 +303,7 @@ ConvergenceWatch::Action ConvergenceWatch::Tick(std::int64_t active_run,
   // The run stopped. One that probed its whole plan (it did not converge, or its verdict came
   // after its last probe) gets a last checkpoint on all of it: the model then uses every probe.
   const auto run = db().GetRun(run_id_);
-  if (run && WholeRunDue(*run)) {
+  if (run && WholeRunDue(*run, db().CountProbes(run_id_).captured)) {
     StartCheckpoint(db(), plan_probes_, "the whole run");
   } else {
     run_id_ = 0;  // nothing more to do until it moves again
@@ -311,9 +311,12 @@ ConvergenceWatch::Action ConvergenceWatch::Tick(std::int64_t active_run,
   return {};
 }
 
-bool ConvergenceWatch::WholeRunDue(const RunRecord& run) const {
-  const int last = curve_.checkpoints.empty() ? 0 : curve_.checkpoints.back().plan_index_limit;
-  return run.state == RunState::kDone && !finish_requested_ && last < plan_probes_;
+bool ConvergenceWatch::WholeRunDue(const RunRecord& run, std::int64_t captured) const {
+  if (run.state != RunState::kDone) return false;
+  if (curve_.checkpoints.empty()) return captured > 0;
+  const Checkpoint& last = curve_.checkpoints.back();
+  // A converged run goes on probing while its last checkpoint calibrates: those probes count.
+  return last.plan_index_limit < plan_probes_ && captured > last.probes;
 }
 
 bool ConvergenceWatch::Calibrating(std::int64_t run_id) const {
@@ -337,15 +340,16 @@ std::optional<Json> ConvergenceWatch::View(const RunDatabase& db, std::int64_t r
     if (run_id_ == run_id) {
       curve = curve_;
       // A run just done waits for the tick that starts its last checkpoint, on the whole run.
-      calibrating = pending_ != 0 || (run && WholeRunDue(*run));
+      calibrating = pending_ != 0 || (run && WholeRunDue(*run, db.CountProbes(run_id).captured));
     }
   }
   if (curve.checkpoints.empty()) curve = LoadConvergenceCurve(db, run_id);
   std::string state = "probing";
-  if (curve.converged) {
-    state = "converged";
-  } else if (calibrating) {
+  // The model of a converged run is the calibration on all its probes: "calibrating" until then.
+  if (calibrating) {
     state = "calibrating";
+  } else if (curve.converged) {
+    state = "converged";
   } else if (run && IsTerminal(run->state)) {
     state = "not_converged";
   }

@@ -103,9 +103,9 @@ class ConvergenceWatch {
   // The round end to calibrate at now (0: none): the latest one the machine has passed with a
   // probe to spare (the committer may still hold the probe before it).
   int DueRoundEnd(const RunProgress& progress) const;
-  // A run that ended by probing its whole plan (not asked to finish) and has no checkpoint on
-  // all of it yet.
-  bool WholeRunDue(const RunRecord& run) const;
+  // A run that is done (its whole plan probed, or finished once converged) and has captured
+  // probes its last checkpoint did not use: `captured` its captured probes.
+  bool WholeRunDue(const RunRecord& run, std::int64_t captured) const;
 
   std::filesystem::path database_;
   std::filesystem::path checkerboards_;

@@ -255,3 +255,53 @@ TEST_CASE("convergence: a run whose stored curve has converged ends at once, its
   CHECK(run["probes_skipped"].get<int>() > 0);
   CHECK_THAT(c.Get("/api/v1/runs/1/log")->body, Catch::Contains("done early (converged)"));
 }
+
+TEST_CASE("convergence: a converged run's model takes in every probe it captured",
+          "[daemon][converge][api]") {
+  // Fast enough to finish, slow enough to stop with part of the plan captured.
+  test::RigFixture f("api-converged-all", 80, 5.0);
+  {
+    test::InProcessDaemon d(test::ConfigFor(f));
+    auto c = d.Client();
+    REQUIRE(PostJson(c, "/api/v1/runs", {{"probes", 80}, {"until_converged", true}})->status ==
+            201);
+    REQUIRE(PostJson(c, "/api/v1/runs/1/start", Json::object())->status == 202);
+    WaitRun(
+        c, 1, [](const Json& run) { return run["probes_done"].get<int>() >= 25; },
+        std::chrono::seconds(120));
+  }  // gs360d stops: the run is interrupted
+  {
+    // As a daemon leaves a run whose verdict came at 20 probes while it went on to more.
+    RunDatabase db(test::ConfigFor(f).DatabasePath());
+    ConvergenceCurve curve;
+    curve.checkpoints = {Done(10, 0.022, 0.038), Done(20, 0.021, 0.037)};
+    curve.converged = true;
+    curve.verdict = "converged at 20 probes";
+    StoreConvergenceCurve(db, 1, curve);
+  }
+  test::InProcessDaemon d(test::ConfigFor(f));
+  auto c = d.Client();
+  Json body = Json::object();
+  const Json stopped = Body(c.Get("/api/v1/runs/1"));
+  if (stopped.contains("awaiting") && stopped["awaiting"].is_string()) {
+    body["confirm"] = stopped["awaiting"];
+  }
+  REQUIRE(PostJson(c, "/api/v1/runs/1/resume", body)->status == 202);
+  const Json run = WaitRun(
+      c, 1,
+      [](const Json& view) {
+        return view["state"] == "done" && view["convergence"]["state"] == "converged";
+      },
+      std::chrono::seconds(240));
+  const int captured = run["probes_done"].get<int>();
+  CHECK(captured >= 25);
+  CHECK(run["probes_skipped"].get<int>() > 0);
+  // The last checkpoint is on every captured probe, and it is the run's model.
+  const Json& list = run["convergence"]["checkpoints"];
+  REQUIRE(list.size() == 3);
+  CHECK(list.back()["state"] == "done");
+  CHECK(list.back()["probes"] == captured);
+  CHECK(Body(c.Get("/api/v1/runs/1/calibration"))["validation"]["probes_captured"] == captured);
+  CHECK_THAT(c.Get("/api/v1/runs/1/log")->body,
+             Catch::Contains("the model now takes in every probe of the run"));
+}
