@@ -42,6 +42,7 @@ void RegisterSweepBench(CLI::App& bench, CommandContext& ctx);     // bench_swee
 void RegisterStressBench(CLI::App& bench, CommandContext& ctx);    // bench_stress.cc
 void RegisterSoakBench(CLI::App& bench, CommandContext& ctx);      // bench_soak.cc
 void RegisterConvergeBench(CLI::App& bench, CommandContext& ctx);  // bench_converge.cc
+void RegisterHeldoutBench(CLI::App& bench, CommandContext& ctx);   // bench_heldout.cc
 
 void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
   static BenchOptions o;
@@ -53,6 +54,7 @@ void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
   RegisterStressBench(*bench, ctx);
   RegisterSoakBench(*bench, ctx);
   RegisterConvergeBench(*bench, ctx);
+  RegisterHeldoutBench(*bench, ctx);
   auto* acq = bench->add_subcommand(
       "acquisition",
       "Time a run: probing wall time vs the planner's estimate, host time per probe");

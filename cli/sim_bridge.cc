@@ -75,6 +75,13 @@ VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t
   options.camera.sensor.seed = seed;
   options.cnc.time_scale = time_scale;
   options.cnc.symlink_path = symlink;
+  // The virtual machine is the one the configuration's [plan.machine] describes (a lab with a
+  // taller finger has a machine that reaches over it).
+  const MachineSettings& machine = config.plan.machine;
+  options.cnc.settings.max_travel_mm = machine.max_travel_mm;
+  options.cnc.settings.max_rate_mm_per_min = machine.max_rate_mm_per_min;
+  options.cnc.settings.acceleration_mm_per_s2 = machine.acceleration_mm_per_s2;
+  options.cnc.settings.junction_deviation_mm = machine.junction_deviation_mm;
   // Enough motion history (pieces, and instant-mode clock jumps: ~9 per probe) and served-frame
   // records (~4 per probe) to verify every frame of a 10,000-probe run against the truth.
   options.cnc.history_pieces = 1u << 18;
