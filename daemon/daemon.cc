@@ -359,6 +359,7 @@ std::optional<Json> Daemon::ListProbes(std::int64_t run_id) const {
            {"attempts", p.attempts}};
     if (!p.last_error.empty()) e["last_error"] = p.last_error;
     if (!p.skip_reason.empty()) e["skip_reason"] = p.skip_reason;
+    if (p.state == ProbeState::kFailed && !p.retry) e["retry"] = false;
     probes.push_back(std::move(e));
   }
   return Json{{"run", run_id}, {"frame", "sensor"}, {"unit", "mm"}, {"probes", probes}};

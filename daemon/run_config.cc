@@ -166,9 +166,14 @@ void EngineConfig::Check() const {
   if (max_recoveries < 0) {
     Invalid("engine.max_recoveries", std::to_string(max_recoveries), "must be >= 0");
   }
-  if (!(impression_min_contrast >= 1.0)) {
+  if (!(impression_min_snr >= 0.0 && impression_min_snr <= 1e6)) {
+    Invalid("engine.impression_min_snr", std::to_string(impression_min_snr),
+            "must be in [0, 1e6] (0: derived from the session)");
+  }
+  if (!(impression_min_contrast == 0.0 ||
+        (impression_min_contrast >= 1.0 && impression_min_contrast <= 1e6))) {
     Invalid("engine.impression_min_contrast", std::to_string(impression_min_contrast),
-            "must be >= 1");
+            "must be 0 (not used) or in [1, 1e6]");
   }
   if (!(impression_radius_px > 0.0)) {
     Invalid("engine.impression_radius_px", std::to_string(impression_radius_px), "must be > 0");
@@ -266,7 +271,7 @@ void RunConfig::Check() const {
 }
 
 nlohmann::json RunConfigToJson(const RunConfig& c) {
-  return {
+  nlohmann::json out = {
       {"name", c.name},
       {"rig", RigConfigToJson(c.rig)},
       {"plan", PlanOptionsToJson(c.plan)},
@@ -300,12 +305,17 @@ nlohmann::json RunConfigToJson(const RunConfig& c) {
         {"reconnect_timeout_s", c.engine.reconnect_timeout_s},
         {"max_recoveries", c.engine.max_recoveries},
         {"require_impression", c.engine.require_impression},
-        {"impression_min_contrast", c.engine.impression_min_contrast},
+        {"impression_min_snr", c.engine.impression_min_snr},
         {"impression_radius_px", c.engine.impression_radius_px},
         {"unverified_resume", c.engine.unverified_resume}}},
       {"converge",
        {{"enabled", c.converge.enabled}, {"min_improvement", c.converge.min_improvement}}},
   };
+  // Only a run stored before the signal-to-noise check has it (EngineConfig).
+  if (c.engine.impression_min_contrast > 0.0) {
+    out["engine"]["impression_min_contrast"] = c.engine.impression_min_contrast;
+  }
+  return out;
 }
 
 void ReadConvergeConfig(JsonReader& r, ConvergeConfig& c) {
@@ -357,8 +367,9 @@ void ReadRunConfig(JsonReader& r, RunConfig& c) {
     o.Get("reconnect_timeout_s", c.engine.reconnect_timeout_s);
     o.Get("max_recoveries", c.engine.max_recoveries);
     o.Get("require_impression", c.engine.require_impression);
-    o.Get("impression_min_contrast", c.engine.impression_min_contrast);
+    o.Get("impression_min_snr", c.engine.impression_min_snr);
     o.Get("impression_radius_px", c.engine.impression_radius_px);
+    o.Get("impression_min_contrast", c.engine.impression_min_contrast);
     o.Get("unverified_resume", c.engine.unverified_resume);
   });
   r.Object("converge", [&](JsonReader& o) { ReadConvergeConfig(o, c.converge); });

@@ -51,13 +51,19 @@ struct EngineConfig {
   double sync_timeout_s = 120.0;      // longest wait for a press's G4 ok
   double reconnect_timeout_s = 60.0;  // how long a vanished port is waited for
   int max_recoveries = 10;            // resets / reconnects handled in one session before giving up
-  // A press frame must show an impression where the probe's point projects (through the nominal
-  // camera) against the session's reference frame: ImpressionContrast (capture/impression.h)
-  // at least impression_min_contrast within impression_radius_px. A frame that does not is a
-  // probe failure (retried up to max_attempts).
+  // A press frame must show an impression within impression_radius_px of where the probe's
+  // point projects (through the nominal camera): PressCheck (capture/press_check.h), against the
+  // session's reference frame and the noise and null distribution measured in the session. A
+  // frame that does not is a probe failure that is not retried (a second press would show the
+  // same); a frozen camera or a frame changed everywhere is retried.
   bool require_impression = true;
-  double impression_min_contrast = 1.4;
+  // > 0: the signal-to-noise ratio an impression must reach, instead of the one the session
+  // derives from its own frames (a user's override).
+  double impression_min_snr = 0.0;
   double impression_radius_px = 40.0;
+  // Runs stored before the check above: their ImpressionContrast threshold (capture/impression.h),
+  // kept with its retries so that such a run resumes as it started. 0 (new runs): not used.
+  double impression_min_contrast = 0.0;
   // When the resume check could compare no re-pressed probe: "ask" (stop, awaiting "sensor") or
   // "continue" (a warning in the log).
   std::string unverified_resume = "ask";

@@ -80,6 +80,20 @@ void RunSession::LoadRun() {
   plan_ = RunEngine::LoadPlan(db_, run_id_);
   travel_ = std::make_shared<TravelPlanner>(MakeRigGeometry(config_.rig), config_.plan);
   camera_ = std::make_unique<FisheyeCamera>(config_.rig.camera);
+  if (config_.engine.require_impression && config_.engine.impression_min_contrast == 0.0) {
+    PressCheckOptions check;
+    check.radius_px = config_.engine.impression_radius_px;
+    check.min_snr = config_.engine.impression_min_snr;
+    check.seed = static_cast<std::uint64_t>(run_id_);
+    std::vector<Eigen::Vector2d> plan_px;
+    const Rigid3d cam_from_sensor = config_.rig.cam_from_sensor();
+    for (const PlannedProbe& p : plan_.probes) {
+      if (const auto px = camera_->CamToPixel(cam_from_sensor * p.point_sensor)) {
+        plan_px.push_back(*px);
+      }
+    }
+    press_check_ = std::make_unique<PressCheck>(check, std::move(plan_px));
+  }
   if (engine_.limits_) {
     guard_ = std::make_unique<SafetyGuard>(*engine_.limits_, travel_, config_.rig.ball_radius,
                                            config_.rig.gel_thickness);
@@ -260,7 +274,34 @@ void RunSession::NoteOutliers(const std::string& what, int plan_index,
                                   "transfer fault?)");
 }
 
+Step RunSession::TakeReference(const PlannedProbe& planned, const ProbeProgram& program,
+                               Press* out) {
+  Clock::time_point sync;
+  Step step = SendAndSync(program.reference, &sync);
+  position_ = planned.approach_machine;
+  at_retract_of_ = -2;
+  if (step.kind != StepKind::kOk) return step;
+  const PressCaptureResult ref = CapturePress(*source_, sync, config_.camera.capture);
+  if (!ref.ok()) return {StepKind::kProbeError, CaptureFailure("reference frame", ref)};
+  NoteOutliers("reference frame", planned.plan_index, ref);
+  if (press_check_) {
+    // The same still scene again: its difference from the first is the camera's noise alone.
+    const PressCaptureResult second = CapturePress(*source_, sync, config_.camera.capture);
+    if (!second.ok()) {
+      return {StepKind::kProbeError, CaptureFailure("second reference frame", second)};
+    }
+    NoteOutliers("second reference frame", planned.plan_index, second);
+    press_check_->SetReference(ref.image, second.image);
+  }
+  db_.AddReferenceFrame(run_id_, ref.image, ToUnix(ref.last_timestamp));
+  last_reference_at_ = probes_done_;
+  out->reference = ref.image;
+  session_reference_ = ref.image;
+  return step;
+}
+
 Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference, Press* out) {
+  last_check_.reset();
   const auto path = TravelTo(planned_in);
   if (!path) {
     return {StepKind::kProbeError, "no collision-free travel from " + Fmt3(position_) +
@@ -272,18 +313,8 @@ Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference,
   const ProbeProgram program = MakeProbeProgram(planned, config_.plan);
 
   if (take_reference) {
-    Clock::time_point sync;
-    Step step = SendAndSync(program.reference, &sync);
-    position_ = planned.approach_machine;
-    at_retract_of_ = -2;
+    Step step = TakeReference(planned, program, out);
     if (step.kind != StepKind::kOk) return step;
-    const PressCaptureResult ref = CapturePress(*source_, sync, config_.camera.capture);
-    if (!ref.ok()) return {StepKind::kProbeError, CaptureFailure("reference frame", ref)};
-    NoteOutliers("reference frame", planned.plan_index, ref);
-    db_.AddReferenceFrame(run_id_, ref.image, ToUnix(ref.last_timestamp));
-    last_reference_at_ = probes_done_;
-    out->reference = ref.image;
-    session_reference_ = ref.image;
   }
 
   Clock::time_point sync;
@@ -303,25 +334,9 @@ Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference,
   if (!sample || !sample->machine_position) {
     return {StepKind::kProbeError, "no status report (machine position) after the press"};
   }
-  // A press that left no mark (the ball missed the gel, the sensor moved, the camera froze) is
-  // not a calibration sample.
-  if (config_.engine.require_impression && !session_reference_.empty()) {
-    const auto expected = camera_->CamToPixel(config_.rig.cam_from_sensor() * planned.point_sensor);
-    if (expected) {
-      const double contrast = ImpressionContrast(capture.image, session_reference_, *expected,
-                                                 config_.engine.impression_radius_px);
-      if (contrast < config_.engine.impression_min_contrast) {
-        return {StepKind::kProbeError,
-                "no impression in the press frame near pixel (" + FormatFixed(expected->x(), 0) +
-                    ", " + FormatFixed(expected->y(), 0) + "): contrast " +
-                    FormatFixed(contrast, 2) + " against the session's reference frame (at least " +
-                    FormatFixed(config_.engine.impression_min_contrast, 2) +
-                    "); the ball did not mark the gel where planned"};
-      }
-    }
-  }
   // GRBL lines carry no checksum: a garbled digit can still parse as a valid move. The machine
-  // must report the press position before the frame counts as that probe's.
+  // must report the press position before the frame counts as that probe's. Checked before the
+  // impression: a press elsewhere leaves none here, and is pressed again.
   const double off = (*sample->machine_position - planned.press_machine).norm();
   if (off > config_.machine.verify_tolerance_mm) {
     return {StepKind::kProbeError, "the machine reports " + Fmt3(*sample->machine_position) +
@@ -329,11 +344,103 @@ Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference,
                                        Fmt3(planned.press_machine) + " (" + FormatFixed(off, 3) +
                                        " mm off: a corrupted line?)"};
   }
+  // A press that left no mark (the ball missed the gel, the sensor moved, the camera froze) is
+  // not a calibration sample.
+  if (auto failed = CheckImpression(planned, capture.image)) return *failed;
   out->frame = capture.image;
   out->mpos = *sample->machine_position;
   out->sync = sync;
   out->frame_time = capture.last_timestamp;
   return {StepKind::kOk, ""};
+}
+
+std::optional<Step> RunSession::CheckImpression(const PlannedProbe& planned, const cv::Mat& frame) {
+  if (!config_.engine.require_impression || session_reference_.empty()) return std::nullopt;
+  const auto expected = camera_->CamToPixel(config_.rig.cam_from_sensor() * planned.point_sensor);
+  if (!expected) return std::nullopt;
+  const std::string near =
+      "near pixel (" + FormatFixed(expected->x(), 0) + ", " + FormatFixed(expected->y(), 0) + ")";
+  if (!press_check_) {  // a run stored before the signal-to-noise check
+    const double contrast = ImpressionContrast(frame, session_reference_, *expected,
+                                               config_.engine.impression_radius_px);
+    if (contrast >= config_.engine.impression_min_contrast) return std::nullopt;
+    return Step{StepKind::kProbeError, "no impression in the press frame " + near + ": contrast " +
+                                           FormatFixed(contrast, 2) +
+                                           " against the session's reference frame (at least " +
+                                           FormatFixed(config_.engine.impression_min_contrast, 2) +
+                                           "); the ball did not mark the gel where planned"};
+  }
+  const PressCheckResult r = press_check_->Check(frame, *expected);
+  last_check_ = r;
+  switch (r.verdict) {
+    case PressVerdict::kImpression:
+      return std::nullopt;
+    case PressVerdict::kFrozen:
+      return Step{StepKind::kProbeError,
+                  std::string("the press frame is identical to ") +
+                      (r.frozen_on_reference ? "the session's reference frame"
+                                             : "the previous press frame") +
+                      ": the camera delivers a frozen picture"};
+    case PressVerdict::kChangedEverywhere:
+      last_reference_at_.reset();  // the next press starts with a fresh one
+      return Step{StepKind::kProbeError,
+                  "the press frame differs from the reference frame away from the press too "
+                  "(signal-to-noise " +
+                      FormatFixed(r.null_snr, 1) + " where nothing was pressed, " +
+                      FormatFixed(r.threshold, 1) +
+                      " counts as a press): the light or the camera changed; a fresh reference "
+                      "frame is taken"};
+    case PressVerdict::kNoImpression:
+      break;
+  }
+  const std::string limit =
+      r.null_samples > 0
+          ? "from this session's frames at " + std::to_string(r.null_samples) +
+                " places where nothing was pressed"
+          : (config_.engine.impression_min_snr > 0.0 ? std::string("engine.impression_min_snr")
+                                                     : std::string("the least any session needs"));
+  return Step{StepKind::kProbeError,
+              "no impression in the press frame " + near + ": signal-to-noise " +
+                  FormatFixed(r.press.snr, 1) + ", at least " + FormatFixed(r.threshold, 1) +
+                  " needed (" + limit +
+                  "); the ball did not mark the gel there, or something hides the spot from the "
+                  "camera. Not pressed again: a second press would show the same",
+              /*retry=*/false};
+}
+
+void RunSession::ReportImpressions() {
+  if (press_check_ && impression_regions_.Presses() > 0) {
+    Event(EventLevel::kInfo,
+          "impression check: " + std::to_string(impression_regions_.Presses()) +
+              " presses, signal-to-noise median " +
+              FormatFixed(impression_regions_.MedianSnr(), 1) + ", weakest counted " +
+              FormatFixed(impression_regions_.WeakestCounted(), 1) + "; needed " +
+              FormatFixed(press_check_->Threshold(), 1) + " (from " +
+              std::to_string(press_check_->NullSamples()) +
+              " places where nothing was pressed: median " +
+              FormatFixed(press_check_->NullQuantile(0.5), 1) + ", 99th percentile " +
+              FormatFixed(press_check_->NullQuantile(0.99), 1) + ", largest " +
+              FormatFixed(press_check_->NullQuantile(1.0), 1) + ")");
+  }
+  constexpr std::size_t kMaxNamed = 8;
+  const std::vector<WeakRegion> regions = impression_regions_.WeakRegions();
+  for (std::size_t i = 0; i < regions.size() && i < kMaxNamed; ++i) {
+    Event(EventLevel::kWarning, regions[i].Describe());
+  }
+  if (regions.size() > kMaxNamed) {
+    Event(EventLevel::kWarning, std::to_string(regions.size() - kMaxNamed) +
+                                    " more regions with weak impressions (the largest are named)");
+  }
+  impression_regions_ = ImpressionRegionTally();  // each is said once
+}
+
+void RunSession::TallyImpression(const PlannedProbe& planned) {
+  if (last_check_ && (last_check_->verdict == PressVerdict::kImpression ||
+                      last_check_->verdict == PressVerdict::kNoImpression)) {
+    impression_regions_.Add(planned.point_sensor, last_check_->press.snr, last_check_->threshold,
+                            last_check_->press.reference_dn);
+  }
+  last_check_.reset();
 }
 
 void RunSession::SendRetract(const ProbeProgram& program, const PlannedProbe& planned) {
@@ -421,6 +528,7 @@ RunReport RunSession::Run() {
 
 RunReport RunSession::Finish(RunOutcome outcome, RunState state, const std::string& message) {
   committer_.Wait();
+  ReportImpressions();
   report_.outcome = outcome;
   report_.message = message;
   SettleAndRecord();
@@ -500,6 +608,7 @@ std::optional<RunReport> RunSession::AfterPress(const Step& step, const ProbeRec
                                                 Clock::time_point t0) {
   switch (step.kind) {
     case StepKind::kOk: {
+      TallyImpression(planned);
       CaptureReport report;
       report.machine_position = press.mpos;
       report.sync_time = ToUnix(press.sync);
@@ -512,7 +621,8 @@ std::optional<RunReport> RunSession::AfterPress(const Step& step, const ProbeRec
       return std::nullopt;
     }
     case StepKind::kProbeError:
-      db_.MarkProbeFailed(probe.id, step.message);
+      TallyImpression(planned);
+      db_.MarkProbeFailed(probe.id, step.message, step.retry);
       ++report_.failed;
       Event(EventLevel::kWarning,
             "probe " + std::to_string(probe.plan_index) + " failed: " + step.message);

@@ -16,6 +16,8 @@
 #include "capture/capture_press.h"
 #include "capture/frame_source.h"
 #include "capture/impression.h"
+#include "capture/impression_regions.h"
+#include "capture/press_check.h"
 #include "daemon/run_engine.h"
 #include "gcode/grbl_client.h"
 #include "gcode/probe_program.h"
@@ -89,6 +91,9 @@ class LostReplyWatch {
 struct Step {
   StepKind kind = StepKind::kOk;
   std::string message;
+  // kProbeError: whether the probe may be pressed again (docs/running.md, "Failures and
+  // attempts"); false for a reason a second press cannot change.
+  bool retry = true;
 };
 
 // What a successful press produced.
@@ -172,6 +177,18 @@ class RunSession {
   void Commanded(const std::vector<std::string>& lines, const Eigen::Vector3d& from);
   // Probing.
   Step PressProbe(const PlannedProbe& planned, bool take_reference, Press* out);
+  // The no-contact reference frame at the approach (and, for the impression check, a second
+  // capture of it: the camera's noise).
+  Step TakeReference(const PlannedProbe& planned, const ProbeProgram& program, Press* out);
+  // Whether the press frame shows the press where the plan puts it; nullopt when it does (or
+  // nothing is checked). Sets last_check_.
+  std::optional<Step> CheckImpression(const PlannedProbe& planned, const cv::Mat& frame);
+  // This session's impression check in the run's events: what it measured (info), and the
+  // regions where impressions were weak (a warning each).
+  void ReportImpressions();
+  // Adds the last press's impression check (a probe-loop press, not a resume's re-press) to
+  // impression_regions_.
+  void TallyImpression(const PlannedProbe& planned);
   // What a failed capture says; a warning event for frames left out of a good one.
   std::string CaptureFailure(const std::string& what, const PressCaptureResult& r);
   void NoteOutliers(const std::string& what, int plan_index, const PressCaptureResult& r);
@@ -232,9 +249,14 @@ class RunSession {
   std::optional<Ask> ask_;  // set by a recovery that needs the user: the run stops and asks
   // The motion sent since the last sync: where it started, then each target (machine frame).
   std::vector<Eigen::Vector3d> last_path_;
-  bool homing_sent_ = false;               // a $H sent after last_path_ (RunRecord::homing_sent)
-  cv::Mat session_reference_;              // the latest no-contact frame of this session
-  std::unique_ptr<FisheyeCamera> camera_;  // the nominal camera, for where a press should show
+  bool homing_sent_ = false;   // a $H sent after last_path_ (RunRecord::homing_sent)
+  cv::Mat session_reference_;  // the latest no-contact frame of this session
+  // The impression check, with the noise and null measured in this session (null: no check, or
+  // the legacy contrast check of an older run, engine.impression_min_contrast).
+  std::unique_ptr<PressCheck> press_check_;
+  std::optional<PressCheckResult> last_check_;  // of the last press, for the region tally
+  ImpressionRegionTally impression_regions_;    // this session's probe-loop presses
+  std::unique_ptr<FisheyeCamera> camera_;       // the nominal camera, for where a press should show
   std::unique_ptr<GrblClient> client_;
   std::unique_ptr<FrameSource> source_;
   ReferenceSchedule references_;

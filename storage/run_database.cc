@@ -100,8 +100,8 @@ RunRecord ReadRun(const Stmt& s) {
   "p.id, p.run_id, p.plan_index, p.point_x, p.point_y, p.point_z, p.normal_x, p.normal_y, "    \
   "p.normal_z, p.approach_x, p.approach_y, p.approach_z, p.press_x, p.press_y, p.press_z, "    \
   "p.retract_x, p.retract_y, p.retract_z, p.state, p.attempts, p.mpos_x, p.mpos_y, p.mpos_z, " \
-  "p.sync_time, p.captured_at, p.last_error, p.skip_reason"
-constexpr int kProbeColumnCount = 27;
+  "p.sync_time, p.captured_at, p.last_error, p.skip_reason, p.retry"
+constexpr int kProbeColumnCount = 28;
 
 ProbeRecord ReadProbe(const Stmt& s) {
   ProbeRecord p;
@@ -120,6 +120,7 @@ ProbeRecord ReadProbe(const Stmt& s) {
   p.captured_at = s.GetOptReal(24);
   p.last_error = s.GetText(25);
   p.skip_reason = s.GetText(26);
+  p.retry = s.GetInt(27) != 0;
   return p;
 }
 
@@ -685,7 +686,8 @@ std::optional<ProbeRecord> RunDatabase::NextPendingProbe(std::int64_t run_id, in
   {
     Stmt s = c.Prepare("SELECT " GS360_PROBE_COLUMNS
                        " FROM probes p WHERE p.run_id = ? AND p.state = 'failed' "
-                       "AND p.attempts < ? AND p.id != ? ORDER BY p.plan_index LIMIT 1");
+                       "AND p.retry != 0 AND p.attempts < ? AND p.id != ? "
+                       "ORDER BY p.plan_index LIMIT 1");
     s.Int(1, run_id).Int(2, max_attempts).Int(3, except.value_or(-1));
     if (s.Step()) {
       ProbeRecord failed = ReadProbe(s);
@@ -733,14 +735,15 @@ std::int64_t RunDatabase::CommitCapture(std::int64_t probe_id, const cv::Mat& im
   return CommitCapture(probe_id, EncodeFrame(image, impl_->options().png), report);
 }
 
-void RunDatabase::MarkProbeFailed(std::int64_t probe_id, std::string_view error) {
+void RunDatabase::MarkProbeFailed(std::int64_t probe_id, std::string_view error, bool retry) {
   const Impl& c = *impl_;
   Transaction tx(c, Transaction::kWrite);
   const auto [run_id, state] = c.ProbeRunAndState(probe_id);
   c.RequireProbeOpen(probe_id, state, "fail");
   Stmt s = c.Prepare(
-      "UPDATE probes SET state = 'failed', attempts = attempts + 1, last_error = ? WHERE id = ?");
-  s.Text(1, error).Int(2, probe_id).Run();
+      "UPDATE probes SET state = 'failed', attempts = attempts + 1, last_error = ?, retry = ? "
+      "WHERE id = ?");
+  s.Text(1, error).Int(2, retry ? 1 : 0).Int(3, probe_id).Run();
   c.TouchRun(run_id, c.Now());
   tx.Commit();
 }

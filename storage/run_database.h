@@ -137,6 +137,7 @@ struct ProbeRecord {
   std::optional<double> captured_at;                // commit time (captured)
   std::string last_error;                           // of the last failed attempt, else empty
   std::string skip_reason;                          // for kSkipped
+  bool retry = true;  // false: failed for a reason a second press cannot change
 };
 
 // What the run engine reports with a press frame.
@@ -273,8 +274,8 @@ class RunDatabase {
   std::vector<ProbeRecord> ListProbes(std::int64_t run_id,
                                       std::optional<ProbeState> state = std::nullopt) const;
   // For resume: the first probe in plan order that is kPlanned, or kFailed with fewer than
-  // `max_attempts` attempts, other than probe id `except` (a probe whose capture is being
-  // committed on another connection); std::nullopt when none is left.
+  // `max_attempts` attempts and not failed with retry false, other than probe id `except` (a probe
+  // whose capture is being committed on another connection); std::nullopt when none is left.
   std::optional<ProbeRecord> NextPendingProbe(std::int64_t run_id, int max_attempts = 1,
                                               std::optional<std::int64_t> except = {}) const;
   ProbeCounts CountProbes(std::int64_t run_id) const;
@@ -290,7 +291,8 @@ class RunDatabase {
   std::int64_t CommitCapture(std::int64_t probe_id, const cv::Mat& image,
                              const CaptureReport& report);
   // A failed attempt: state failed, attempts + 1, last_error. Probe must not be captured.
-  void MarkProbeFailed(std::int64_t probe_id, std::string_view error);
+  // `retry` false: NextPendingProbe never returns it again (the reason would not change).
+  void MarkProbeFailed(std::int64_t probe_id, std::string_view error, bool retry = true);
   // Deliberately not probed: state skipped with the reason. Probe must not be captured.
   void MarkProbeSkipped(std::int64_t probe_id, std::string_view reason);
   // Every probe of the run not captured (planned or failed) skipped with `reason`, in one

@@ -122,11 +122,18 @@ constexpr std::string_view kVersion4 = R"sql(
 ALTER TABLE runs ADD COLUMN homing_sent INTEGER NOT NULL DEFAULT 0;
 )sql";
 
+// A failed probe that is not pressed again, whatever its attempts: it failed for a reason a
+// second press cannot change (no impression where the plan put it).
+constexpr std::string_view kVersion5 = R"sql(
+ALTER TABLE probes ADD COLUMN retry INTEGER NOT NULL DEFAULT 1;
+)sql";
+
 constexpr std::array<SchemaMigration, kSchemaVersion> kMigrations = {{
     {1, kVersion1},
     {2, kVersion2},
     {3, kVersion3},
     {4, kVersion4},
+    {5, kVersion5},
 }};
 
 }  // namespace

@@ -8,6 +8,7 @@
 //
 // Version 1: runs, probes, frames, events (acquisition).
 // Version 2: artifacts, models (calibration stages and exported models).
+// Version 5: probes.retry (a failed probe that is not pressed again).
 
 #include <cstdint>
 #include <filesystem>
@@ -16,7 +17,7 @@
 
 namespace gs360 {
 
-inline constexpr int kSchemaVersion = 4;
+inline constexpr int kSchemaVersion = 5;
 inline constexpr std::int32_t kApplicationId = 0x47533336;  // "GS36"
 
 struct SchemaMigration {

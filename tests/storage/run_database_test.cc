@@ -259,6 +259,14 @@ TEST_CASE("failed and skipped probes, and the order a resume follows", "[storage
   CHECK_FALSE(db.NextPendingProbe(run, 2));
   CHECK(db.ListCapturedProbes(run).size() == 4);
 
+  // A failure a second press cannot change: never pending again, whatever max_attempts says.
+  db.MarkProbeFailed(ids[4], "no impression", false);
+  CHECK(db.GetProbe(ids[4])->attempts == 3);
+  CHECK_FALSE(db.GetProbe(ids[4])->retry);
+  CHECK(db.GetProbe(ids[0])->retry);
+  CHECK_FALSE(db.NextPendingProbe(run, 10));
+  CHECK(db.CountProbes(run).failed == 1);
+
   // A run ending early skips what is open (planned or failed), never a captured probe.
   const std::int64_t other = db.CreateRun("{}", "h");
   const std::vector<std::int64_t> more = db.InsertPlan(other, MakePlan(5));
