@@ -66,19 +66,24 @@ TEST_CASE("under dim LEDs every weak but real impression counts", "[daemon][pres
   REQUIRE(r.outcome == RunOutcome::kDone);
 
   RunDatabase db(f.db);
-  // Only presses a fin hides from the true camera fail, once each: the mark each leaves in its
-  // image, without noise, is too faint for calibration's impression finder to take.
+  // What fails is mostly presses a fin hides from the true camera, once each: the mark each
+  // leaves in its image, without noise, too faint for calibration's impression finder. At most
+  // 1 % of the presses that left a mark it would take are lost (the issue's goal; a press right
+  // at the threshold can fall either side with the noise).
   TactileCameraOptions clean = f.rig->options().camera;
   clean.sensor.noise = false;
   TactileCamera truth(f.rig->rig(), clean);
   const auto failed = db.ListProbes(run_id, ProbeState::kFailed);
   CHECK(failed.size() <= 10);
+  int marked_lost = 0;
   for (const ProbeRecord& p : failed) {
     CHECK_THAT(p.last_error, Contains("no impression") && Contains("Not pressed again"));
     CHECK(p.attempts == 1);
     CHECK_FALSE(p.retry);
-    CHECK(TrueMark(f, truth, p.plan) < ImpressionOptions{}.min_peak_dn);
+    if (TrueMark(f, truth, p.plan) >= ImpressionOptions{}.min_peak_dn) ++marked_lost;
   }
+  const auto pressed = db.ListCapturedProbes(run_id).size() + failed.size();
+  CHECK(100 * marked_lost <= static_cast<int>(pressed));
   // Captured presses the contrast over the frame's 99th percentile (the check before, at 1.4)
   // would have failed: weak impressions in a dim part of the gel.
   const FisheyeCamera camera(f.config.rig.camera);

@@ -64,7 +64,7 @@ TEST_CASE("malformed configs name the file, the line and the field", "[daemon][c
   std::filesystem::remove_all(dir);
 }
 
-TEST_CASE("a probe count given is the count planned; machine_hours sizes the rest",
+TEST_CASE("a probe count given is the count planned, machine_hours sizes the rest",
           "[daemon][config]") {
   // gs360d's default: sized in machine time.
   CHECK(DaemonConfig{}.run.plan.machine_hours == kDefaultMachineHours);

@@ -296,7 +296,7 @@ TEST_CASE("FitInscribedProfile recovers a built-in profile from its mesh", "[sha
                   std::invalid_argument);
 }
 
-TEST_CASE("Fins end below where their outline would fold; cut there they build", "[shapes]") {
+TEST_CASE("Fins end below where their outline would fold, and cut there they build", "[shapes]") {
   FinOptions o;  // inset 1.5
   const auto cylinder = MakeCylinderCapProfile({});
   CHECK(std::isinf(FinFoldZ(o, *cylinder)));
