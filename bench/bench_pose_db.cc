@@ -1,5 +1,6 @@
 // Diagnostics of the pose stage on a stored run of the virtual rig (uses the simulator's truth).
-// Usage: bench_pose_db --db RUN.db [--run 1] [--seed 1] [--cache FILE] [--simulate] [--csv FILE]
+// Usage: bench_pose_db --db RUN.db [--run 1] [--seed 1 | --config RIG.toml] [--cache FILE]
+//                      [--simulate] [--csv FILE]
 //
 // Loads the run's captured probes (as calib/pipeline.cc does: MPos -> ball centre, nearest
 // reference frame), finds each impression with FindImpressionRegion on the STORED frames, and
@@ -10,7 +11,9 @@
 // bench_pose does, to separate the acquisition path from the scene. --cache keeps the per-probe
 // measurements (the frame decoding is the slow part). Then runs EstimateCamFromSensor with the
 // run's calibrated intrinsics (its intrinsics artifact) and with the true ones, and prints the
-// pose errors and residual statistics by height, view angle and distance to the fins.
+// pose errors and residual statistics by height, view angle and distance to the fins. --config: a
+// run of a rig file with a [sim] table (`gs360 bench heldout`'s rig-N.toml, `gs360 demo --config`):
+// the simulated rig (camera perturbation, lighting, noise) and its seed are read from it.
 
 #include <algorithm>
 #include <chrono>
@@ -36,12 +39,15 @@
 #include "calib/render.h"
 #include "capture/impression.h"
 #include "cli/calibrate_support.h"
+#include "cli/heldout_rigs.h"
+#include "cli/sim_args.h"
 #include "cli/sim_bridge.h"
 #include "recon/model_bundle.h"
 #include "recon/surface_map.h"
 #include "sim/ground_truth.h"
 #include "sim/rig_model.h"
 #include "sim/tactile_camera.h"
+#include "sim/virtual_rig.h"
 #include "storage/run_database.h"
 
 namespace {
@@ -139,7 +145,7 @@ void PrintPose(const char* name, const PoseResult& r, const Rigid3d& truth) {
 }
 
 struct Args {
-  std::string db_path, cache, csv;
+  std::string db_path, cache, csv, config;
   std::int64_t run_id = 1;
   std::uint64_t seed = 1;
   bool simulate = false;
@@ -154,6 +160,9 @@ void AddOptions(CLI::App& app, Args& args) {
       ->check(CLI::ExistingFile);
   app.add_option("--run", args.run_id, "run id in the database");
   app.add_option("--seed", args.seed, "seed of the simulated rig (as the run was made)");
+  app.add_option("--config", args.config,
+                 "the rig file the run was made from (its [sim] table and seed; not with --seed)")
+      ->check(CLI::ExistingFile);
   app.add_option("--cache", args.cache,
                  "per-probe measurements cache, read if valid, else written");
   app.add_option("--csv", args.csv, "write one row per probe to this CSV file");
@@ -184,6 +193,7 @@ struct Bench {
   RunDatabase db;
   CalibrationInputs inputs;
   std::shared_ptr<const SimRig> rig;
+  TactileCameraOptions sim_camera;  // the simulator's lighting and noise, for --simulate
   FisheyeCamera true_camera;
   Rigid3d true_pose;
   FisheyeCamera camera;  // the run's calibrated intrinsics, else the nominal ones
@@ -208,7 +218,19 @@ Bench LoadBench(const Args& args) {
   RunDatabase db(args.db_path, ReadOnly());
   const RunConfig config = StoredRunConfig(db, args.run_id);
   CalibrationInputs inputs = CalibrationInputsFor(config);
-  auto rig = std::make_shared<const SimRig>(cli::SimRigOptionsFor(config.rig, args.seed));
+  // The simulated rig as the run was made: --seed's defaults, or the rig file's [sim] table.
+  std::uint64_t seed = args.seed;
+  cli::SimArgs sim_args;
+  if (!args.config.empty()) {
+    cli::HeldoutRig file;
+    file.config = args.config;
+    cli::LoadHeldoutRig(file, &sim_args, &seed);
+  }
+  VirtualRigOptions sim;
+  sim.rig = cli::SimRigOptionsFor(config.rig, seed);
+  sim.camera.sensor.seed = seed;
+  cli::ApplySimArgs(sim_args, &sim);
+  auto rig = std::make_shared<const SimRig>(sim.rig);
   const FisheyeCamera true_camera = SimGroundTruth::TrueCamera(*rig);
   const Rigid3d true_pose = SimGroundTruth::TrueCamFromSensor(*rig);
   const std::optional<FisheyeIntrinsics> calibrated = CalibratedIntrinsics(db, args.run_id);
@@ -220,6 +242,7 @@ Bench LoadBench(const Args& args) {
                std::move(db),
                std::move(inputs),
                std::move(rig),
+               sim.camera,
                true_camera,
                true_pose,
                camera,
@@ -259,7 +282,7 @@ void MeasureStride(Bench& b, int t, int threads) {
   std::unique_ptr<TactileCamera> sim;
   cv::Mat sim_ref;
   if (b.args.simulate) {
-    TactileCameraOptions to;
+    TactileCameraOptions to = b.sim_camera;
     to.threads = 1;
     sim = std::make_unique<TactileCamera>(b.rig, to);
     sim_ref = sim->RenderReference(900000 + static_cast<std::uint64_t>(t));
@@ -525,7 +548,11 @@ void PrintSubsets(const Bench& b, const Observations& obs, const PoseSetup& setu
     for (std::size_t i = 0; i < obs.stored.size(); ++i) {
       if (keep(*obs.rows[i])) sub.push_back(obs.stored[i]);
     }
-    PrintPose(name, estimate(sub), b.true_pose);
+    try {
+      PrintPose(name, estimate(sub), b.true_pose);
+    } catch (const PoseError& e) {
+      std::printf("  %-44s %s\n", name, e.what());
+    }
   };
   subset("subset z >= 3", [](const Row& r) { return r.point.z() >= 3.0; });
   subset("subset view < 50", [](const Row& r) { return r.view_deg < 50.0; });

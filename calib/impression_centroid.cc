@@ -1,6 +1,10 @@
 #include "calib/impression_centroid.h"
 
+#include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <numbers>
+#include <optional>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -10,6 +14,102 @@
 #include "capture/impression.h"
 
 namespace gs360 {
+namespace {
+
+constexpr double kRayStepPx = 0.5;
+
+// Bilinear sample of `magnitude` (CV_32F) at (x, y); false outside the image or next to a pixel
+// that `mask` (optional) excludes.
+bool Sample(const cv::Mat& magnitude, const cv::Mat& mask, double x, double y, double* value) {
+  const int x0 = static_cast<int>(std::floor(x)), y0 = static_cast<int>(std::floor(y));
+  if (x0 < 0 || y0 < 0 || x0 + 1 >= magnitude.cols || y0 + 1 >= magnitude.rows) return false;
+  if (!mask.empty()) {
+    for (int dy = 0; dy < 2; ++dy) {
+      for (int dx = 0; dx < 2; ++dx) {
+        if (mask.at<std::uint8_t>(y0 + dy, x0 + dx) == 0) return false;
+      }
+    }
+  }
+  const double fx = x - x0, fy = y - y0;
+  const float* r0 = magnitude.ptr<float>(y0);
+  const float* r1 = magnitude.ptr<float>(y0 + 1);
+  *value = (1.0 - fy) * ((1.0 - fx) * r0[x0] + fx * r0[x0 + 1]) +
+           fy * ((1.0 - fx) * r1[x0] + fx * r1[x0 + 1]);
+  return true;
+}
+
+// Distance from `centre` along direction `angle` to the imprint's edge: past the ray's maximum,
+// where the magnitude falls below threshold_fraction of that maximum (linear between samples).
+// Negative when the ray has no edge of its own: too weak, or it leaves the image or the mask, or
+// `reach`, first.
+double EdgeAlongRay(const cv::Mat& magnitude, const cv::Mat& mask, const Eigen::Vector2d& centre,
+                    double angle, double reach, double min_max,
+                    const ImpressionCentroidOptions& options) {
+  const Eigen::Vector2d step = kRayStepPx * Eigen::Vector2d(std::cos(angle), std::sin(angle));
+  std::vector<double> profile;
+  double value = 0.0, best = 0.0;
+  std::size_t best_at = 0;
+  for (int i = 0; i * kRayStepPx <= reach; ++i) {
+    const Eigen::Vector2d p = centre + i * step;
+    if (!Sample(magnitude, mask, p.x(), p.y(), &value)) break;
+    profile.push_back(value);
+    if (value > best) {
+      best = value;
+      best_at = profile.size() - 1;
+    }
+  }
+  if (best < min_max) return -1.0;
+  const double threshold = options.threshold_fraction * best;
+  for (std::size_t i = best_at; i + 1 < profile.size(); ++i) {
+    if (profile[i + 1] >= threshold) continue;
+    const double f = (profile[i] - threshold) / (profile[i] - profile[i + 1]);
+    return (static_cast<double>(i) + f) * kRayStepPx;
+  }
+  return -1.0;
+}
+
+// One round of the per-direction edge from `centre`: the area centroid of the edge polygon (rays
+// without an edge take the radius interpolated between their neighbours'), or nullopt when too
+// few rays have an edge.
+std::optional<Eigen::Vector2d> DirectionalCentre(const cv::Mat& magnitude, const cv::Mat& mask,
+                                                 double peak, const Eigen::Vector2d& centre,
+                                                 double reach,
+                                                 const ImpressionCentroidOptions& options) {
+  const int n = options.directions;
+  const double min_max = std::max(options.min_direction_fraction * peak, options.min_threshold_dn);
+  std::vector<double> radius(static_cast<std::size_t>(n));
+  std::vector<int> with_edge;
+  for (int k = 0; k < n; ++k) {
+    const double angle = 2.0 * std::numbers::pi * k / n;
+    radius[static_cast<std::size_t>(k)] =
+        EdgeAlongRay(magnitude, mask, centre, angle, reach, min_max, options);
+    if (radius[static_cast<std::size_t>(k)] >= 0.0) with_edge.push_back(k);
+  }
+  if (with_edge.empty() ||
+      static_cast<double>(with_edge.size()) < options.min_direction_share * n) {
+    return std::nullopt;
+  }
+  std::vector<cv::Point2f> polygon;
+  for (int k = 0; k < n; ++k) {
+    double r = radius[static_cast<std::size_t>(k)];
+    if (r < 0.0) {  // between the nearest rays with an edge on either side (circularly)
+      int before = k, after = k;
+      while (radius[static_cast<std::size_t>((before + n) % n)] < 0.0) --before;
+      while (radius[static_cast<std::size_t>(after % n)] < 0.0) ++after;
+      const double t = static_cast<double>(k - before) / (after - before);
+      r = (1.0 - t) * radius[static_cast<std::size_t>((before + n) % n)] +
+          t * radius[static_cast<std::size_t>(after % n)];
+    }
+    const double angle = 2.0 * std::numbers::pi * k / n;
+    polygon.emplace_back(static_cast<float>(centre.x() + r * std::cos(angle)),
+                         static_cast<float>(centre.y() + r * std::sin(angle)));
+  }
+  const cv::Moments m = cv::moments(polygon);
+  if (!(m.m00 > 0.0)) return std::nullopt;
+  return Eigen::Vector2d(m.m10 / m.m00, m.m01 / m.m00);
+}
+
+}  // namespace
 
 void ImpressionCentroidOptions::Check() const {
   auto fail = [](const char* field, double value, const char* what) {
@@ -25,6 +125,18 @@ void ImpressionCentroidOptions::Check() const {
   if (!(window_px > 0.0)) fail("window_px", window_px, "must be > 0");
   if (!(max_area_fraction > 0.0 && max_area_fraction <= 1.0)) {
     fail("max_area_fraction", max_area_fraction, "must be in (0, 1]");
+  }
+  if (directions != 0 && (directions < 8 || directions > 3600)) {
+    fail("directions", directions, "must be 0 or in [8, 3600]");
+  }
+  if (direction_rounds < 1 || direction_rounds > 20) {
+    fail("direction_rounds", direction_rounds, "must be in [1, 20]");
+  }
+  if (!(min_direction_fraction >= 0.0 && min_direction_fraction < 1.0)) {
+    fail("min_direction_fraction", min_direction_fraction, "must be in [0, 1)");
+  }
+  if (!(min_direction_share > 0.0 && min_direction_share <= 1.0)) {
+    fail("min_direction_share", min_direction_share, "must be in (0, 1]");
   }
 }
 
@@ -78,12 +190,25 @@ std::optional<ImpressionRegion> FindImpressionRegion(const cv::Mat& press, const
   cv::convexHull(points, hull);
   const cv::Moments m = cv::moments(hull);
   if (hull.size() >= 3 && m.m00 > 0.0) {
-    out.centroid = Eigen::Vector2d(m.m10 / m.m00, m.m01 / m.m00);
+    out.hull_centroid = Eigen::Vector2d(m.m10 / m.m00, m.m01 / m.m00);
     out.area_px = m.m00;
   } else {
-    out.centroid = out.weighted_centroid;
+    out.hull_centroid = out.weighted_centroid;
     out.area_px = static_cast<double>(points.size());
   }
+  out.centroid = out.hull_centroid;
+  if (options.directions == 0) return out;
+  // The per-direction edge (header comment), out to twice the region's radius.
+  const double reach =
+      std::min(options.window_px, 2.0 * std::sqrt(out.area_px / std::numbers::pi) + 4.0);
+  Eigen::Vector2d centre = out.hull_centroid;
+  for (int round = 0; round < options.direction_rounds; ++round) {
+    const auto next = DirectionalCentre(magnitude, mask, peak, centre, reach, options);
+    if (!next) return out;  // the hull centroid
+    centre = *next;
+  }
+  out.centroid = centre;
+  out.directional = true;
   return out;
 }
 

@@ -5,9 +5,17 @@
 // unchanged, barely differs from the reference), so the weighted centroid is pulled toward the
 // lit side by several pixels. Here the imprint's REGION is estimated instead: the pixels where the
 // blurred difference magnitude exceeds a fraction of its peak, near the peak, closed by their
-// convex hull (the imprint of a ball is a convex blob in the image of a smooth surface); the
-// centre is the area centroid of that hull. It estimates the centroid of the deformed region,
-// which calib/render.h's contact_centroid models (the elastic rim widens the region almost
+// convex hull (the imprint of a ball is a convex blob in the image of a smooth surface).
+// That region still follows the lighting where one side of the imprint changes colour much less
+// than the other (an imprint seen face-on and lit from one side, as every probe of a dome is):
+// a threshold at a fraction of the GLOBAL peak keeps the lit side's whole slope but cuts the dim
+// side well inside its edge, a crescent whose centre sits several pixels toward the lit side. So
+// the edge is then found per direction (`directions` rays from the region's centre): where the
+// magnitude along the ray falls below threshold_fraction of that ray's own maximum, beyond it.
+// The lighting scales each direction's profile by its own gain, which that ratio divides out.
+// The centre is the area centroid of the polygon of those edge points, the rays cast again from
+// it (`direction_rounds`). It estimates the centroid of the deformed region, which
+// calib/render.h's contact_centroid models (the elastic rim widens the region almost
 // symmetrically).
 //
 // Pixels: (u right, v down), as geometry/fisheye.h.
@@ -28,6 +36,15 @@ struct ImpressionCentroidOptions {
   // More than this fraction of the usable pixels above the threshold, anywhere: no press but a
   // frame unlike the reference everywhere (saturated, black, corrupt): no impression ((0, 1]).
   double max_area_fraction = 0.25;
+  // The per-direction edge (see above): rays around the region's centre (0 = the hull centroid
+  // alone, else >= 8); how often they are cast again from the new centre (>= 1); a ray whose
+  // maximum is below this fraction of the peak (or below min_threshold_dn) has no edge of its own
+  // ([0, 1)); fewer rays with an edge than min_direction_share of them (or a ray leaving the
+  // image or `mask` before its edge): the hull centroid is kept ((0, 1]).
+  int directions = 72;
+  int direction_rounds = 3;
+  double min_direction_fraction = 0.05;
+  double min_direction_share = 0.75;
   template <typename Self, typename Visitor>
   static void Fields(Self& self, Visitor& visit) {
     visit("blur_sigma_px", self.blur_sigma_px);
@@ -36,12 +53,20 @@ struct ImpressionCentroidOptions {
     visit("min_threshold_dn", self.min_threshold_dn);
     visit("window_px", self.window_px);
     visit("max_area_fraction", self.max_area_fraction);
+    visit("directions", self.directions);
+    visit("direction_rounds", self.direction_rounds);
+    visit("min_direction_fraction", self.min_direction_fraction);
+    visit("min_direction_share", self.min_direction_share);
   }
   void Check() const;  // throws std::invalid_argument naming the field and value
 };
 
 struct ImpressionRegion {
-  Eigen::Vector2d centroid = Eigen::Vector2d::Zero();           // hull area centroid (px)
+  // The centre (px): the per-direction edge polygon's area centroid, or hull_centroid where the
+  // directions found no edge (or `directions` is 0).
+  Eigen::Vector2d centroid = Eigen::Vector2d::Zero();
+  Eigen::Vector2d hull_centroid = Eigen::Vector2d::Zero();      // the thresholded region's hull
+  bool directional = false;                                     // centroid from the directions
   Eigen::Vector2d weighted_centroid = Eigen::Vector2d::Zero();  // difference-weighted (px)
   double peak_dn = 0.0;
   double area_px = 0.0;  // hull area

@@ -22,6 +22,14 @@
 // the robust fit kept a biased subset and missed the rotation target. The refinement therefore
 // leaves them out (at least min_view_fraction of the observations are kept: the least oblique
 // ones).
+// Face-on imprints: a centroid bias shared by the probes of a region of the gel is not seen in the
+// residuals when the pose can absorb it. On a dome seen face-on (every contact point about as far
+// from the camera, all of them near face-on) a bias along the image radius, the same on every
+// probe, is what moving the camera along its axis does, and that is where it goes: one pixel
+// toward the image centre moves the camera by about a tenth of a millimetre, on a tall finger as
+// on a dome. Impressions lit from one side (face-on ones on every shape: a dome's, a tip's) are
+// such a bias when their region is cut at a fraction of the global peak; the impression centre
+// (calib/impression_centroid.h) therefore finds the imprint's edge per direction.
 // Bias model (model_bias): the centroid of an impression is not the projection of its contact
 // point -- the imprint is a disc seen obliquely through a fisheye. With the gel mesh given, each
 // refinement round builds the surface map (recon/surface_map.h) for the current pose, renders

