@@ -1,11 +1,15 @@
 #pragma once
 // Whether a press frame shows its press: a change near where the plan puts the probe that the
-// session's own noise cannot explain. What the decision compares with is measured in the session,
-// not set on a rig: the camera's noise, from two no-contact captures taken back to back at each
-// reference (DifferenceNoise); and the statistic's distribution where nothing was pressed (windows
-// of that pair, and windows of each press frame far from its press), to which the threshold is
-// fitted. The fixed numbers are a probability (how often a frame with no impression may pass) and a
-// floor for a camera without noise, whose null distribution is zero.
+// session's own noise cannot explain. The change is measured at a few blur scales, each a matched
+// filter for an impression of about its size (a small sharp one, or a large faint one near the
+// camera that a narrow blur would leave buried in its noise), and the largest standardized change
+// over them is the statistic. What the decision compares with is measured in the session, not set
+// on a rig: the camera's noise at each scale, from two no-contact captures taken back to back at
+// each reference (DifferenceNoise); and the statistic's distribution where nothing was pressed
+// (windows of that pair, and windows of each press frame far from its press, measured with the same
+// scales), to which the threshold is fitted. The fixed numbers are a probability (how often a frame
+// with no impression may pass) and a floor for a camera without noise, whose null distribution is
+// zero.
 //
 // Images: CV_8UC3 of one size (std::invalid_argument otherwise), pixels (u right, v down).
 
@@ -26,8 +30,19 @@ namespace gs360 {
 class DifferenceNoise {
  public:
   DifferenceNoise() = default;
-  // Throws std::invalid_argument for images that are not CV_8UC3 of one size.
+  // Measured level by level at blur_sigma_px (in [0, 50]), from pixels at least 2 blur sigmas
+  // from the image's edge (nearer, the blur took mirrored pixels: the same noise twice). Throws
+  // std::invalid_argument for images that are not CV_8UC3 of one size or a blur out of range.
   DifferenceNoise(const cv::Mat& reference, const cv::Mat& second, double blur_sigma_px);
+  // At a wider blur: `finer`'s spread level by level, times one factor per channel, the spread of
+  // the pair's difference at this blur over `finer`'s, pooled over the image's pixels lit alike
+  // across this blur (a wide blur leaves too few independent pixels at each level to measure each
+  // on its own; how much a blur divides the noise depends on how far the noise is shared between
+  // neighbours, not on the light). With too few such pixels (a camera without noise), the factor
+  // a white noise would show. Throws std::invalid_argument as above, for an empty `finer`, or a
+  // blur_sigma_px not above finer's.
+  DifferenceNoise(const cv::Mat& reference, const cv::Mat& second, double blur_sigma_px,
+                  const DifferenceNoise& finer);
   bool empty() const { return blur_sigma_px_ < 0.0; }
   double blur_sigma_px() const { return blur_sigma_px_; }
   // Sigma (DN) of a blurred difference of two captures in `channel` (0..2) at `level` (DN).
@@ -44,6 +59,7 @@ class DifferenceNoise {
 struct ImpressionSnr {
   double snr = 0.0;                                   // largest standardized change (no unit)
   Eigen::Vector2d peak_px = Eigen::Vector2d::Zero();  // where it is
+  double blur_sigma_px = 0.0;                         // the blur it was measured at (px)
   double peak_dn = 0.0;       // the change there, DN (8-bit scale, blurred, drift removed)
   double noise_dn = 0.0;      // the noise there (root mean square of the three channels), DN
   double reference_dn = 0.0;  // the reference's mean level over the window (DN): how lit it is
@@ -53,8 +69,9 @@ struct ImpressionSnr {
 // averages out, unlike in DifferenceMagnitude's magnitude), less the part proportional to the
 // blurred reference level L that fits the window best (median of D / L per channel: LED drift
 // scales all the light); s: noise.Sigma at L. snr: the largest sqrt(sum_c (D_c / s_c)^2) within
-// radius_px of expected_px; 0 when the window lies outside the image. Throws
-// std::invalid_argument for images that are not CV_8UC3 of one size or an empty noise.
+// radius_px of expected_px and at least 2 blur sigmas from the image's edge; 0 when there is no
+// such pixel. Throws std::invalid_argument for images that are not CV_8UC3 of one size or an empty
+// noise.
 ImpressionSnr MeasureImpressionSnr(const cv::Mat& press, const cv::Mat& reference,
                                    const DifferenceNoise& noise, const Eigen::Vector2d& expected_px,
                                    double radius_px);
@@ -69,8 +86,10 @@ double GumbelQuantileAbove(std::vector<double> samples, double chance);
 inline constexpr double kMinImpressionSnr = 5.0;
 
 struct PressCheckOptions {
-  double radius_px = 40.0;     // how far from the expected pixel the impression may lie, > 0
-  double blur_sigma_px = 2.0;  // >= 0
+  double radius_px = 40.0;  // how far from the expected pixel the impression may lie, > 0
+  // The blurs (Gaussian sigma, px) the change is measured at: 1 to 4 of them, increasing, in
+  // [0, 50].
+  std::vector<double> blur_sigmas_px = {2.0, 4.0, 8.0};
   // The chance that a press frame without an impression near the expected pixel passes, under
   // the session's measured null distribution: in (0, 0.01].
   double false_accept = 1e-6;
@@ -118,7 +137,10 @@ class PressCheck {
   double NullQuantile(double q) const;
 
  private:
-  ImpressionSnr Measure(const cv::Mat& press, const Eigen::Vector2d& at) const;
+  // MeasureImpressionSnr at every blur, the largest; `blurred`: `press` blurred at each (the whole
+  // image, as level_), or null to blur its window here.
+  ImpressionSnr Measure(const cv::Mat& press, const Eigen::Vector2d& at,
+                        const std::vector<cv::Mat>* blurred = nullptr) const;
   // Up to `count` planned pixels farther than `away_px` from `from` (all when away_px is 0).
   std::vector<Eigen::Vector2d> NullPlaces(const Eigen::Vector2d& from, double away_px, int count);
   void AddNull(double snr);
@@ -127,7 +149,8 @@ class PressCheck {
   std::vector<Eigen::Vector2d> plan_px_;
   std::mt19937_64 rng_;
   cv::Mat reference_, second_, last_press_;
-  DifferenceNoise noise_;
+  std::vector<DifferenceNoise> noise_;  // one per blur, finest first
+  std::vector<cv::Mat> level_;          // the reference at each blur (CV_32FC3, whole image)
   std::deque<double> null_;
 };
 

@@ -18,12 +18,10 @@ using gs360::PressVerdict;
 constexpr int kWidth = 320;
 constexpr int kHeight = 240;
 
-// A scene lit brightly on its left half and dimly on its right (the shot noise follows: sigma 4
-// DN on the left, 1.5 on the right), as a K-frame average the camera delivers: `seed` draws the
-// noise, `bump_dn` adds an impression of that amplitude (a dimple's two-sided shading: one
-// colour up, another down) centred at `at`.
-cv::Mat Capture(std::uint64_t seed, double bump_dn = 0.0, cv::Point2d at = {240, 120},
-                double gain = 1.0) {
+// A scene lit brightly on its left half and dimly on its right; `bump_dn` adds an impression of
+// that amplitude centred at `at`, a Gaussian of sigma size_px: a dimple's two-sided shading (one
+// colour up, another down on one side, the other way on the other), or a shade over every colour.
+cv::Mat Scene(double bump_dn, cv::Point2d at, double size_px, bool two_sided) {
   cv::Mat signal(kHeight, kWidth, CV_32FC3);
   for (int y = 0; y < kHeight; ++y) {
     for (int x = 0; x < kWidth; ++x) {
@@ -35,13 +33,22 @@ cv::Mat Capture(std::uint64_t seed, double bump_dn = 0.0, cv::Point2d at = {240,
     for (int y = 0; y < kHeight; ++y) {
       for (int x = 0; x < kWidth; ++x) {
         const double dx = x - at.x, dy = y - at.y;
-        const double b = bump_dn * std::exp(-(dx * dx + dy * dy) / (2.0 * 8.0 * 8.0));
+        const double b = bump_dn * std::exp(-(dx * dx + dy * dy) / (2.0 * size_px * size_px));
         const double side = dx >= 0.0 ? 1.0 : -1.0;
         signal.at<cv::Vec3f>(y, x) +=
-            cv::Vec3f(static_cast<float>(b * side), 0.0f, static_cast<float>(-b * side));
+            two_sided ? cv::Vec3f(static_cast<float>(b * side), 0.0f, static_cast<float>(-b * side))
+                      : cv::Vec3f::all(static_cast<float>(-b));
       }
     }
   }
+  return signal;
+}
+
+// Scene() as a K-frame average the camera delivers (the shot noise follows the light: sigma 4 DN
+// on the left, 1.5 on the right): `seed` draws the noise.
+cv::Mat Capture(std::uint64_t seed, double bump_dn = 0.0, cv::Point2d at = {240, 120},
+                double gain = 1.0, double size_px = 8.0, bool two_sided = true) {
+  const cv::Mat signal = Scene(bump_dn, at, size_px, two_sided);
   std::mt19937 rng(static_cast<unsigned>(seed));
   std::normal_distribution<float> unit(0.0f, 1.0f);
   cv::Mat out(kHeight, kWidth, CV_8UC3);
@@ -198,6 +205,100 @@ TEST_CASE("PressCheck: a camera without noise still needs a change to count",
   CHECK(check.Check(speck, {240, 120}).verdict == PressVerdict::kNoImpression);
 }
 
+namespace {
+
+// Scene() with Capture()'s noise drawn by OpenCV (faster, for many frames), spread over a
+// Gaussian of sigma grain_px (0: white) at the same sigma per pixel: a camera whose demosaicing
+// shares each pixel's noise with its neighbours.
+cv::Mat FastCapture(std::uint64_t seed, double grain_px) {
+  cv::Mat noise(kHeight, kWidth, CV_32FC3);
+  cv::RNG rng(seed);
+  rng.fill(noise, cv::RNG::NORMAL, 0.0, 1.0);
+  if (grain_px > 0.0) {
+    cv::GaussianBlur(noise, noise, cv::Size(), grain_px, grain_px, cv::BORDER_REFLECT);
+    noise *= 2.0 * std::sqrt(3.14159265358979323846) * grain_px;
+  }
+  cv::Mat bright = noise.colRange(0, kWidth / 2), dim = noise.colRange(kWidth / 2, kWidth);
+  bright *= 4.0;
+  dim *= 1.5;
+  cv::Mat out;
+  cv::Mat(Scene(0.0, {}, 8.0, true) + noise).convertTo(out, CV_8UC3);
+  return out;
+}
+
+}  // namespace
+
+TEST_CASE("DifferenceNoise at a wide blur: the finer one's by level, scaled as the pair shows",
+          "[capture][press_check]") {
+  // White noise: a blur 4 times wider averages it 4 times down. Noise shared over neighbours
+  // (sigma 2.5 px): less, sqrt((2.5^2 + 2^2) / (2.5^2 + 8^2)) = 0.38.
+  const double grain = GENERATE(0.0, 2.5);
+  const double expected = std::sqrt((grain * grain + 4.0) / (grain * grain + 64.0));
+  const cv::Mat a = FastCapture(1, grain), b = FastCapture(2, grain);
+  const gs360::DifferenceNoise fine(a, b, 2.0), wide(a, b, 8.0, fine);
+  CHECK(wide.blur_sigma_px() == 8.0);
+  // This frame holds some 100 independent spots of an 8 px blur: each channel's factor is good to
+  // about 10 %, their mean to about 5 %.
+  const double levels[3] = {144.0, 180.0, 108.0};
+  double factor = 0.0;
+  for (int c = 0; c < 3; ++c) factor += wide.Sigma(c, levels[c]) / fine.Sigma(c, levels[c]) / 3.0;
+  CHECK(factor == Approx(expected).epsilon(0.1));
+  CHECK(wide.Sigma(1, 180.0) / wide.Sigma(1, 40.0) == Approx(4.0 / 1.5).epsilon(0.15));
+  CHECK_THROWS_AS(gs360::DifferenceNoise(a, b, 2.0, fine), std::invalid_argument);
+  CHECK_THROWS_AS(gs360::DifferenceNoise(a, b, 8.0, gs360::DifferenceNoise()),
+                  std::invalid_argument);
+}
+
+TEST_CASE("PressCheck: a large faint impression counts when measured at a wide blur too",
+          "[capture][press_check]") {
+  gs360::PressCheckOptions narrow;
+  narrow.blur_sigmas_px = {2.0};
+  gs360::PressCheck single(narrow, Grid()), multi({}, Grid());
+  const cv::Mat reference = Capture(1), second = Capture(2);
+  single.SetReference(reference, second);
+  multi.SetReference(reference, second);
+  // A shade of 0.8 DN over a spot of sigma 10 px (an impression near the camera, in a dimly lit
+  // part) where the noise is 1.5 DN per pixel: the 2 px blur leaves it in its noise, a wider one
+  // does not.
+  for (std::uint64_t seed = 10; seed < 15; ++seed) {
+    const cv::Mat press = Capture(seed, 0.8, {240, 120}, 1.0, 10.0, /*two_sided=*/false);
+    const gs360::PressCheckResult at_one = single.Check(press, {240, 120});
+    const gs360::PressCheckResult at_three = multi.Check(press, {240, 120});
+    CHECK(at_one.verdict == PressVerdict::kNoImpression);
+    CHECK(at_three.verdict == PressVerdict::kImpression);
+    CHECK(at_three.press.blur_sigma_px > 2.0);
+    CHECK((at_three.press.peak_px - Eigen::Vector2d(240, 120)).norm() < 10.0);
+  }
+  // A small sharp one stands out most at the finest.
+  const gs360::PressCheckResult small =
+      multi.Check(Capture(20, 20.0, {240, 120}, 1.0, 2.0), {240, 120});
+  CHECK(small.verdict == PressVerdict::kImpression);
+  CHECK(small.press.blur_sigma_px == 2.0);
+}
+
+TEST_CASE("PressCheck: frames without an impression pass at the false-accept rate",
+          "[capture][press_check]") {
+  // At false_accept 1 %, about 10 of 1,000 frames of noise alone pass (a Poisson count: 2 to 25
+  // but once in a thousand draws), with white noise and with noise shared between neighbouring
+  // pixels, which a wide blur averages away less.
+  const double grain = GENERATE(0.0, 2.5);
+  gs360::PressCheckOptions o;
+  o.false_accept = 0.01;
+  const std::vector<Eigen::Vector2d> grid = Grid();
+  gs360::PressCheck check(o, grid);
+  check.SetReference(FastCapture(1, grain), FastCapture(2, grain));
+  constexpr int kFrames = 1000;
+  int passed = 0;
+  for (int i = 0; i < kFrames; ++i) {
+    const gs360::PressCheckResult r =
+        check.Check(FastCapture(100 + i, grain), grid[(7 * i) % grid.size()]);
+    REQUIRE(r.verdict != PressVerdict::kFrozen);
+    if (r.verdict == PressVerdict::kImpression) ++passed;
+  }
+  CHECK(passed >= 2);
+  CHECK(passed <= 25);
+}
+
 TEST_CASE("PressCheckOptions::Check names the field", "[capture][press_check]") {
   gs360::PressCheckOptions o;
   o.false_accept = 0.5;
@@ -208,6 +309,15 @@ TEST_CASE("PressCheckOptions::Check names the field", "[capture][press_check]") 
   o = {};
   o.press_null_windows = 0;
   CHECK_THROWS_WITH(gs360::PressCheck(o, Grid()), Contains("press_null_windows"));
+  for (const std::vector<double>& bad : std::vector<std::vector<double>>{
+           {}, {2.0, 2.0}, {4.0, 2.0}, {-1.0}, {2.0, 60.0}, {1.0, 2.0, 3.0, 4.0, 5.0}}) {
+    o = {};
+    o.blur_sigmas_px = bad;
+    CHECK_THROWS_WITH(o.Check(), Contains("blur_sigmas_px"));
+  }
+  o = {};
+  o.blur_sigmas_px = {0.0, 3.0};
+  CHECK_NOTHROW(o.Check());
 }
 
 namespace {
