@@ -586,6 +586,7 @@ void Calibration::Pose() {
       o.contact_normal_sensor = probes_[k].normal_sensor;
       o.ball_center_sensor = probes_[k].ball_sensor;
       o.centroid_px = impressions_[k].centroid;
+      o.region_px = impressions_[k].pixels;
       obs.push_back(o);
     }
     PoseResult r;
@@ -609,6 +610,7 @@ void Calibration::Pose() {
     (*metrics)["mean_bias_px"] = r.mean_bias_px;
     (*metrics)["outliers"] = r.outliers;
     (*metrics)["oblique_excluded"] = r.oblique;
+    (*metrics)["spread_excluded"] = r.spread;
     (*metrics)["view_bound_deg"] = r.view_bound_deg;
     (*metrics)["moved_from_nominal_mm"] = TranslationDifferenceMm(r.cam_from_sensor, nominal);
     (*metrics)["moved_from_nominal_deg"] =

@@ -10,7 +10,8 @@
 //   2. refined: Levenberg-Marquardt on the fisheye reprojection error of the probes seen at most
 //      max_view_angle_deg from their normal (Huber weights, then observations whose residual
 //      exceeds the outlier bound are dropped and the fit repeated), starting from the paper
-//      estimate.
+//      estimate. A pose that puts an observation outside the lens's valid field counts it as
+//      1000 px off (there the projection folds back).
 // Oblique imprints: the view angle of a probe is the angle between the camera ray to its contact
 // point and the contact normal (at the paper estimate). Seen obliquely, an imprint is a bump
 // seen from the side; its far side (normals turned toward the occluding contour) changes colour
@@ -69,7 +70,8 @@ struct PoseObservation {
   Eigen::Vector3d contact_normal_sensor = Eigen::Vector3d::UnitZ();  // its outward unit normal
   Eigen::Vector3d ball_center_sensor = Eigen::Vector3d::Zero();      // ball centre at the press, mm
   Eigen::Vector2d centroid_px = Eigen::Vector2d::Zero();             // observed impression centre
-  double weight = 1.0;                                               // > 0 (e.g. 1 / sigma^2)
+  double region_px = 0.0;  // the impression region's size (pixels counted in it); 0: unknown
+  double weight = 1.0;     // > 0 (e.g. 1 / sigma^2)
 };
 
 struct PoseOptions {
@@ -88,8 +90,12 @@ struct PoseOptions {
   // The refined fit's condition number (PoseResult::condition) above this -> PoseError: the
   // impressions do not determine the pose (>= 1; infinity accepts any).
   double max_condition = 100.0;
-  bool model_bias = true;         // needs the gel mesh (PoseScene::gel)
-  int bias_rounds = 3;            // bias model: render / refit rounds (>= 1)
+  bool model_bias = true;  // needs the gel mesh (PoseScene::gel)
+  int bias_rounds = 3;     // bias model: render / refit rounds (>= 1)
+  // Bias model: an observation whose region (region_px) is more than this many times larger,
+  // relative to its rendered imprint's contact, than the median observation's is left out (a
+  // change spread far beyond one imprint: a faint press among the noise). 0 keeps all; else >= 1.
+  double max_region_ratio = 3.0;
   double ball_radius_mm = 2.0;    // the probe ball (> 0)
   ProbeRenderOptions render;      // for the bias model's imprints
   SurfaceMapOptions surface_map;  // for the bias model's surface maps
@@ -110,6 +116,7 @@ struct PoseOptions {
     visit("max_condition", self.max_condition);
     visit("model_bias", self.model_bias);
     visit("bias_rounds", self.bias_rounds);
+    visit("max_region_ratio", self.max_region_ratio);
     visit("ball_radius_mm", self.ball_radius_mm);
     visit("render", self.render);
     visit("surface_map", self.surface_map);
@@ -141,6 +148,7 @@ struct PoseResult {
   int bias_rounds = 0;                     // rounds of the bias model done (0 = none)
   double mean_bias_px = 0.0;               // mean |bias_i| of the last round (0 without the model)
   int no_rendered_contact = 0;             // observations whose rendered imprint was empty (bias 0)
+  int spread = 0;                          // left out by max_region_ratio
   double seconds = 0.0;
 };
 
