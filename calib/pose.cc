@@ -223,6 +223,10 @@ void PoseOptions::Check() const {
   }
   if (min_observations < 6) ThrowField("min_observations", min_observations, "must be >= 6");
   if (bias_rounds < 1) ThrowField("bias_rounds", bias_rounds, "must be >= 1");
+  if (!(max_bound_rms_ratio == 0.0 ||
+        (max_bound_rms_ratio >= 1.0 && std::isfinite(max_bound_rms_ratio)))) {
+    ThrowField("max_bound_rms_ratio", max_bound_rms_ratio, "must be 0 or finite and >= 1");
+  }
   if (!(max_region_ratio == 0.0 || (max_region_ratio >= 1.0 && std::isfinite(max_region_ratio)))) {
     ThrowField("max_region_ratio", max_region_ratio, "must be 0 or finite and >= 1");
   }
@@ -499,6 +503,65 @@ int DropSpread(const std::vector<int>& contact_px, const PoseOptions& options,
 
 }  // namespace
 
+namespace {
+
+// A refinement over one set of observations, with the bias model's rounds.
+struct SubsetFit {
+  PoseFit fit;
+  std::vector<PoseObservation> used;  // after DropSpread
+  int spread = 0, bias_rounds = 0, no_rendered_contact = 0;
+  double mean_bias_px = 0.0;
+};
+
+// 3. Refinement over `used` from `start` without offsets; 4. the bias model: offsets from
+// rendered imprints under the current pose, then refit (the spread ones left out after the first
+// render).
+SubsetFit FitSubset(const FisheyeCamera& camera, std::vector<PoseObservation> used,
+                    const Rigid3d& start, const PoseOptions& options, const PoseScene& scene) {
+  SubsetFit out;
+  out.fit = RefineCamFromSensor(camera, used, {}, start, options);
+  if (options.model_bias) {
+    std::vector<Eigen::Vector2d> offsets(used.size(), Eigen::Vector2d::Zero());
+    for (int round = 0; round < options.bias_rounds; ++round) {
+      const Rigid3d pose = out.fit.cam_from_sensor;
+      std::vector<int> contact_px(used.size(), 0);
+      out.no_rendered_contact =
+          BiasOffsets(camera, pose, used, options, scene, &offsets, &contact_px);
+      if (round == 0) out.spread = DropSpread(contact_px, options, &used, &offsets);
+      out.fit = RefineCamFromSensor(camera, used, offsets, pose, options);
+      out.bias_rounds = round + 1;
+      double sum = 0.0;
+      for (const Eigen::Vector2d& b : offsets) sum += b.norm();
+      out.mean_bias_px = sum / static_cast<double>(used.size());
+    }
+  }
+  out.used = std::move(used);
+  return out;
+}
+
+// 5. The view bound's check: when the bound left observations out and its fit's inliers scatter
+// more than max_bound_rms_ratio times those of a fit over every observation, the bounded set's
+// own centres are what is wrong (on tall fingers the face-on imprints near the base are the
+// large, faint ones), and the fit over all replaces it. A fit over all that fails keeps the
+// bounded one.
+void CheckViewBound(const FisheyeCamera& camera, std::span<const PoseObservation> observations,
+                    const Rigid3d& start, const PoseOptions& options, const PoseScene& scene,
+                    SubsetFit* bounded, PoseResult* result) {
+  if (result->oblique == 0 || options.max_bound_rms_ratio <= 0.0) return;
+  try {
+    SubsetFit all =
+        FitSubset(camera, {observations.begin(), observations.end()}, start, options, scene);
+    if (!(bounded->fit.rms_px > options.max_bound_rms_ratio * all.fit.rms_px)) return;
+    *bounded = std::move(all);
+    result->view_bound_released = true;
+    result->oblique = 0;
+    result->view_bound_deg = 90.0;
+  } catch (const PoseError&) {
+  }
+}
+
+}  // namespace
+
 PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
                                  std::span<const PoseObservation> observations,
                                  const Rigid3d& nominal_cam_from_sensor, const PoseOptions& options,
@@ -509,29 +572,15 @@ PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
   PoseResult result;
   EstimatePaperPose(camera, observations, nominal_cam_from_sensor, options, &result);
   const Rigid3d& start = result.paper_cam_from_sensor;
-  std::vector<PoseObservation> used = ChooseObservations(observations, start, options, &result);
-
-  // 3. Refinement over the chosen probes, without offsets.
-  PoseFit fit = RefineCamFromSensor(camera, used, {}, start, options);
-
-  // 4. Bias model: offsets from rendered imprints under the current pose, then refit.
-  if (options.model_bias) {
-    std::vector<Eigen::Vector2d> offsets(used.size(), Eigen::Vector2d::Zero());
-    for (int round = 0; round < options.bias_rounds; ++round) {
-      const Rigid3d pose = fit.cam_from_sensor;
-      std::vector<int> contact_px(used.size(), 0);
-      const int empty = BiasOffsets(camera, pose, used, options, scene, &offsets, &contact_px);
-      if (round == 0) result.spread = DropSpread(contact_px, options, &used, &offsets);
-      fit = RefineCamFromSensor(camera, used, offsets, pose, options);
-      result.bias_rounds = round + 1;
-      result.no_rendered_contact = empty;
-      double sum = 0.0;
-      for (const Eigen::Vector2d& b : offsets) sum += b.norm();
-      result.mean_bias_px = sum / static_cast<double>(used.size());
-    }
-  }
-  const std::size_t n_used = used.size();
-
+  SubsetFit best = FitSubset(camera, ChooseObservations(observations, start, options, &result),
+                             start, options, scene);
+  CheckViewBound(camera, observations, start, options, scene, &best, &result);
+  const PoseFit& fit = best.fit;
+  const std::size_t n_used = best.used.size();
+  result.spread = best.spread;
+  result.bias_rounds = best.bias_rounds;
+  result.no_rendered_contact = best.no_rendered_contact;
+  result.mean_bias_px = best.mean_bias_px;
   result.condition = fit.condition;
   if (!(fit.condition <= options.max_condition)) {
     throw PoseError("EstimateCamFromSensor: the " + std::to_string(n_used) +
@@ -546,7 +595,7 @@ PoseResult EstimateCamFromSensor(const FisheyeCamera& camera,
   result.inliers = fit.inliers;
   result.outliers = static_cast<int>(n_used) - fit.inliers;
   for (std::size_t i = 0; i < n_used; ++i) {
-    if (!fit.inlier[i]) result.outlier_probe_indices.push_back(used[i].probe_index);
+    if (!fit.inlier[i]) result.outlier_probe_indices.push_back(best.used[i].probe_index);
   }
   result.seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();

@@ -86,6 +86,9 @@ struct PoseOptions {
   // the least oblique are used instead (min_view_fraction in (0, 1]).
   double max_view_angle_deg = 50.0;
   double min_view_fraction = 0.25;
+  // The view bound is released (the fit over every observation is kept instead) when the bounded
+  // fit's inlier RMS is more than this many times the unbounded fit's. 0: never; else >= 1.
+  double max_bound_rms_ratio = 2.0;
   int min_observations = 6;  // fewer usable observations -> PoseError (>= 6)
   // The refined fit's condition number (PoseResult::condition) above this -> PoseError: the
   // impressions do not determine the pose (>= 1; infinity accepts any).
@@ -112,6 +115,7 @@ struct PoseOptions {
     visit("outlier_px", self.outlier_px);
     visit("max_view_angle_deg", self.max_view_angle_deg);
     visit("min_view_fraction", self.min_view_fraction);
+    visit("max_bound_rms_ratio", self.max_bound_rms_ratio);
     visit("min_observations", self.min_observations);
     visit("max_condition", self.max_condition);
     visit("model_bias", self.model_bias);
@@ -141,9 +145,10 @@ struct PoseResult {
   double condition = 0.0;
   double paper_rms_px = 0.0;  // paper: RMS reprojection over its RANSAC inliers
   int paper_inliers = 0;
-  int oblique = 0;                // observations left out of the refinement by the view bound
-  double view_bound_deg = 0.0;    // the view-angle bound applied (max_view_angle_deg or more)
-  int inliers = 0, outliers = 0;  // refined fit over the observations within the view bound
+  int oblique = 0;                   // observations left out of the refinement by the view bound
+  double view_bound_deg = 0.0;       // the view-angle bound applied (max_view_angle_deg or more)
+  bool view_bound_released = false;  // the bound's fit was replaced by one over all (step 5)
+  int inliers = 0, outliers = 0;     // refined fit over the observations within the view bound
   std::vector<int> outlier_probe_indices;  // PoseObservation::probe_index of the outliers
   int bias_rounds = 0;                     // rounds of the bias model done (0 = none)
   double mean_bias_px = 0.0;               // mean |bias_i| of the last round (0 without the model)
