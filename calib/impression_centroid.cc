@@ -17,6 +17,7 @@ namespace gs360 {
 namespace {
 
 constexpr double kRayStepPx = 0.5;
+constexpr int kJoinPx = 3;
 
 // Bilinear sample of `magnitude` (CV_32F) at (x, y); false outside the image or next to a pixel
 // that `mask` (optional) excludes.
@@ -109,6 +110,50 @@ std::optional<Eigen::Vector2d> DirectionalCentre(const cv::Mat& magnitude, const
   return Eigen::Vector2d(m.m10 / m.m00, m.m01 / m.m00);
 }
 
+// The region in `window` (CV_8U of its size, non-zero = in): pixels above `threshold` within
+// `radius` of the peak and connected to it across gaps of up to 2 * kJoinPx, so that a change
+// elsewhere in the window (LED drift at the gel's edge, a fin) does not pull the centre while the
+// weak side of a one-sided imprint stays joined to it.
+cv::Mat RegionAroundPeak(const cv::Mat& magnitude, const cv::Rect& window, const cv::Point& peak_at,
+                         float threshold, double radius) {
+  cv::Mat above = magnitude(window) > threshold;
+  cv::Mat disc = cv::Mat::zeros(window.size(), CV_8U);
+  cv::circle(disc, peak_at - window.tl(), static_cast<int>(std::floor(radius)), cv::Scalar(255),
+             cv::FILLED);
+  above &= disc;
+  cv::Mat joined, labels;
+  cv::dilate(
+      above, joined,
+      cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * kJoinPx + 1, 2 * kJoinPx + 1)));
+  cv::connectedComponents(joined, labels, 8, CV_32S);
+  const int label = labels.at<std::int32_t>(peak_at - window.tl());
+  return above & (labels == label);
+}
+
+// The frame's strongest change is kept when it lies within search_radius_px of the expected pixel,
+// or when nothing near it reaches min_peak_dn (a nominal pose far off must not lose every press);
+// otherwise the strongest change near the expected pixel is the impression. True when the peak
+// kept lies near the expected pixel.
+bool NearExpected(const cv::Mat& magnitude, const cv::Mat& mask, const Eigen::Vector2d& expected,
+                  const ImpressionCentroidOptions& options, double& peak, cv::Point& peak_at) {
+  const double du = peak_at.x - expected.x(), dv = peak_at.y - expected.y();
+  if (du * du + dv * dv <= options.search_radius_px * options.search_radius_px) return true;
+  cv::Mat near = cv::Mat::zeros(magnitude.size(), CV_8U);
+  cv::circle(near,
+             cv::Point(static_cast<int>(std::lround(expected.x())),
+                       static_cast<int>(std::lround(expected.y()))),
+             static_cast<int>(std::ceil(options.search_radius_px)), cv::Scalar(255), cv::FILLED);
+  if (!mask.empty()) near &= mask;
+  if (cv::countNonZero(near) == 0) return false;
+  double near_peak = 0.0;
+  cv::Point near_at;
+  cv::minMaxLoc(magnitude, nullptr, &near_peak, nullptr, &near_at, near);
+  if (near_peak < options.min_peak_dn) return false;
+  peak = near_peak;
+  peak_at = near_at;
+  return true;
+}
+
 }  // namespace
 
 void ImpressionCentroidOptions::Check() const {
@@ -123,6 +168,7 @@ void ImpressionCentroidOptions::Check() const {
   }
   if (!(min_threshold_dn >= 0.0)) fail("min_threshold_dn", min_threshold_dn, "must be >= 0");
   if (!(window_px > 0.0)) fail("window_px", window_px, "must be > 0");
+  if (!(search_radius_px > 0.0)) fail("search_radius_px", search_radius_px, "must be > 0");
   if (!(max_area_fraction > 0.0 && max_area_fraction <= 1.0)) {
     fail("max_area_fraction", max_area_fraction, "must be in (0, 1]");
   }
@@ -140,15 +186,17 @@ void ImpressionCentroidOptions::Check() const {
   }
 }
 
-std::optional<ImpressionRegion> FindImpressionRegion(const cv::Mat& press, const cv::Mat& reference,
-                                                     const ImpressionCentroidOptions& options,
-                                                     const cv::Mat& mask) {
+std::optional<ImpressionRegion> FindImpressionRegion(
+    const cv::Mat& press, const cv::Mat& reference, const ImpressionCentroidOptions& options,
+    const cv::Mat& mask, const std::optional<Eigen::Vector2d>& expected_px) {
   options.Check();
   const cv::Mat magnitude =
       DifferenceMagnitude(press, reference, mask, options.blur_sigma_px, "FindImpressionRegion");
   double peak = 0.0;
   cv::Point peak_at;
   cv::minMaxLoc(magnitude, nullptr, &peak, nullptr, &peak_at);
+  const bool near = expected_px && expected_px->allFinite() &&
+                    NearExpected(magnitude, mask, *expected_px, options, peak, peak_at);
   if (peak < options.min_peak_dn) return std::nullopt;
   const float threshold =
       static_cast<float>(std::max(options.threshold_fraction * peak, options.min_threshold_dn));
@@ -159,16 +207,15 @@ std::optional<ImpressionRegion> FindImpressionRegion(const cv::Mat& press, const
   const int w = static_cast<int>(std::ceil(options.window_px));
   const cv::Rect window = cv::Rect(peak_at.x - w, peak_at.y - w, 2 * w + 1, 2 * w + 1) &
                           cv::Rect(0, 0, press.cols, press.rows);
-  const double w2 = options.window_px * options.window_px;
+  const cv::Mat region = RegionAroundPeak(magnitude, window, peak_at, threshold, options.window_px);
   std::vector<cv::Point> points;
   double sw = 0.0, su = 0.0, sv = 0.0;
   int u0 = press.cols, v0 = press.rows, u1 = -1, v1 = -1;
   for (int v = window.y; v < window.y + window.height; ++v) {
     const float* row = magnitude.ptr<float>(v);
+    const std::uint8_t* in = region.ptr<std::uint8_t>(v - window.y);
     for (int u = window.x; u < window.x + window.width; ++u) {
-      if (row[u] <= threshold) continue;
-      const double du = u - peak_at.x, dv = v - peak_at.y;
-      if (du * du + dv * dv > w2) continue;
+      if (in[u - window.x] == 0) continue;
       points.emplace_back(u, v);
       const double weight = row[u] - threshold;
       sw += weight;
@@ -183,6 +230,7 @@ std::optional<ImpressionRegion> FindImpressionRegion(const cv::Mat& press, const
   if (points.empty() || sw <= 0.0) return std::nullopt;
   ImpressionRegion out;
   out.peak_dn = peak;
+  out.near_expected = near;
   out.pixels = static_cast<int>(points.size());
   out.box = cv::Rect(u0, v0, u1 - u0 + 1, v1 - v0 + 1);
   out.weighted_centroid = Eigen::Vector2d(su / sw, sv / sw);
@@ -210,6 +258,10 @@ std::optional<ImpressionRegion> FindImpressionRegion(const cv::Mat& press, const
   out.centroid = centre;
   out.directional = true;
   return out;
+}
+
+bool NominalPoseHolds(int found, int near) {
+  return 2 * near >= found;
 }
 
 }  // namespace gs360

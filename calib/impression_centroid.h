@@ -33,6 +33,8 @@ struct ImpressionCentroidOptions {
   double threshold_fraction = 0.2;  // region = pixels above this fraction of the peak, (0, 1)
   double min_threshold_dn = 3.0;    // ... and above this many DN (noise floor, >= 0)
   double window_px = 60.0;          // only pixels within this distance of the peak (> 0)
+  // With an expected pixel: a peak farther than this from it is looked for again near it (> 0).
+  double search_radius_px = 40.0;
   // More than this fraction of the usable pixels above the threshold, anywhere: no press but a
   // frame unlike the reference everywhere (saturated, black, corrupt): no impression ((0, 1]).
   double max_area_fraction = 0.25;
@@ -52,6 +54,7 @@ struct ImpressionCentroidOptions {
     visit("threshold_fraction", self.threshold_fraction);
     visit("min_threshold_dn", self.min_threshold_dn);
     visit("window_px", self.window_px);
+    visit("search_radius_px", self.search_radius_px);
     visit("max_area_fraction", self.max_area_fraction);
     visit("directions", self.directions);
     visit("direction_rounds", self.direction_rounds);
@@ -69,16 +72,27 @@ struct ImpressionRegion {
   bool directional = false;                                     // centroid from the directions
   Eigen::Vector2d weighted_centroid = Eigen::Vector2d::Zero();  // difference-weighted (px)
   double peak_dn = 0.0;
-  double area_px = 0.0;  // hull area
-  int pixels = 0;        // pixels above the threshold in the window
-  cv::Rect box;          // bounding box of those pixels
+  bool near_expected = false;  // the peak lies within search_radius_px of expected_px
+  double area_px = 0.0;        // hull area
+  int pixels = 0;              // pixels above the threshold in the window
+  cv::Rect box;                // bounding box of those pixels
 };
 
 // `press`, `reference`: CV_8UC3 of one size (std::invalid_argument otherwise); optional `mask`
 // (CV_8U, non-zero = usable). nullopt when no peak reaches min_peak_dn, or when more than
-// max_area_fraction of the usable pixels exceed the threshold.
-std::optional<ImpressionRegion> FindImpressionRegion(const cv::Mat& press, const cv::Mat& reference,
-                                                     const ImpressionCentroidOptions& options = {},
-                                                     const cv::Mat& mask = cv::Mat());
+// max_area_fraction of the usable pixels exceed the threshold. `expected_px` (optional, pixels):
+// where the press should show (its contact point through the nominal pose). When the frame's
+// strongest change lies farther than options.search_radius_px from it, the strongest change
+// within that radius is taken instead, if it reaches min_peak_dn, so that another change in the
+// frame (LED drift, a fin's edge) is not taken for a faint press; a non-finite one is ignored.
+// The region is the pixels above the threshold within window_px of the peak and connected to it.
+std::optional<ImpressionRegion> FindImpressionRegion(
+    const cv::Mat& press, const cv::Mat& reference, const ImpressionCentroidOptions& options = {},
+    const cv::Mat& mask = cv::Mat(), const std::optional<Eigen::Vector2d>& expected_px = {});
+
+// Whether a run's nominal pose holds: at least half of its `found` impressions are `near` their
+// expected pixel. When it does, an impression found far from it is another change in its frame,
+// not the press; when it does not, the nominal pose is off and the pose fit sorts them out.
+bool NominalPoseHolds(int found, int near);
 
 }  // namespace gs360

@@ -389,6 +389,7 @@ class Calibration {
     Eigen::Vector2d centroid = Eigen::Vector2d::Zero();
     double peak = 0.0;
     int pixels = 0;
+    bool near = false;  // near where the nominal pose puts the press (not stored)
   };
 
   RunDatabase& db_;
@@ -540,18 +541,39 @@ void Calibration::Intrinsics() {
   camera_.emplace(result_.intrinsics);
 }
 
+namespace {
+
+// Impressions found far from where the nominal pose puts their press are left out when the
+// nominal pose holds (NominalPoseHolds). Returns how many were left out.
+template <typename Found>
+int DropFarFromNominal(std::vector<Found>& found) {
+  int ok = 0, near = 0;
+  for (const Found& f : found) {
+    ok += f.ok ? 1 : 0;
+    near += f.ok && f.near ? 1 : 0;
+  }
+  if (!NominalPoseHolds(ok, near)) return 0;
+  for (Found& f : found) f.ok = f.ok && f.near;
+  return ok - near;
+}
+
+}  // namespace
+
 void Calibration::Impressions() {
   const auto blob = runner_.Run("impressions", Key("impressions"), [&](Json* metrics) {
     std::vector<Found> found(probes_.size());
     std::vector<FrameLoader> loaders(static_cast<std::size_t>(options_.threads));
-    ParallelOverProbes(db_.path(), probes_.size(), options_.threads,
-                       [&](std::size_t k, int t, RunDatabase& conn) {
-                         FrameLoader& fl = loaders[static_cast<std::size_t>(t)];
-                         const cv::Mat press = fl.Press(conn, probes_[k]);
-                         const cv::Mat ref = fl.Reference(conn, probes_[k]);
-                         const auto imp = FindImpressionRegion(press, ref, options_.impression);
-                         if (imp) found[k] = {true, imp->centroid, imp->peak_dn, imp->pixels};
-                       });
+    ParallelOverProbes(
+        db_.path(), probes_.size(), options_.threads, [&](std::size_t k, int t, RunDatabase& conn) {
+          FrameLoader& fl = loaders[static_cast<std::size_t>(t)];
+          const cv::Mat press = fl.Press(conn, probes_[k]);
+          const cv::Mat ref = fl.Reference(conn, probes_[k]);
+          const auto imp = FindImpressionRegion(
+              press, ref, options_.impression, {},
+              Camera().ProjectUnchecked(inputs_.nominal_cam_from_sensor * probes_[k].point_sensor));
+          if (imp) found[k] = {true, imp->centroid, imp->peak_dn, imp->pixels, imp->near_expected};
+        });
+    (*metrics)["far_from_nominal_dropped"] = DropFarFromNominal(found);
     std::vector<std::uint8_t> out;
     int ok = 0;
     for (const Found& f : found) {

@@ -401,6 +401,49 @@ TEST_CASE("EstimateCamFromSensor: the view bound keeps the least oblique when to
   CHECK_THROWS_WITH(bad.Check(), Catch::Contains("min_view_fraction"));
 }
 
+// Held-out rig 9 (docs/benchmarks.md): faint presses whose frames changed more elsewhere had their
+// impression taken 30-165 px away. With the pixel the press should show at, a peak far from it is
+// looked for again near it; with nothing near it, the far one stays (a nominal pose far off).
+TEST_CASE("FindImpressionRegion: the peak is looked for near the expected pixel", "[pose]") {
+  const cv::Mat reference(240, 320, CV_8UC3, cv::Scalar(80, 80, 80));
+  cv::Mat press = reference.clone();
+  cv::circle(press, cv::Point(60, 60), 8, cv::Scalar(140, 140, 140), cv::FILLED);    // strong, far
+  cv::circle(press, cv::Point(240, 170), 8, cv::Scalar(100, 100, 100), cv::FILLED);  // the press
+  const auto anywhere = FindImpressionRegion(press, reference);
+  REQUIRE(anywhere);
+  CHECK((anywhere->centroid - Eigen::Vector2d(60, 60)).norm() < 1.5);
+  ImpressionCentroidOptions options;
+  const auto near =
+      FindImpressionRegion(press, reference, options, {}, Eigen::Vector2d(230.0, 160.0));
+  REQUIRE(near);
+  CHECK((near->centroid - Eigen::Vector2d(240, 170)).norm() < 1.5);
+  // Nothing near it, or no expected pixel: the strongest change.
+  for (const Eigen::Vector2d& expected :
+       {Eigen::Vector2d(160.0, 40.0), Eigen::Vector2d(NAN, 0.0)}) {
+    const auto far = FindImpressionRegion(press, reference, options, {}, expected);
+    REQUIRE(far);
+    CHECK((far->centroid - Eigen::Vector2d(60, 60)).norm() < 1.5);
+  }
+  options.search_radius_px = 0.0;
+  CHECK_THROWS_WITH(options.Check(), Catch::Contains("search_radius_px"));
+  // A run keeps only the near ones while at least half are near; else the nominal pose is off.
+  CHECK(NominalPoseHolds(10, 5));
+  CHECK_FALSE(NominalPoseHolds(10, 4));
+  CHECK(NominalPoseHolds(0, 0));
+}
+
+// A second change in the window, apart from the press (LED drift at the gel's edge): left out.
+TEST_CASE("FindImpressionRegion: the region is connected to the peak", "[pose]") {
+  const cv::Mat reference(240, 320, CV_8UC3, cv::Scalar(80, 80, 80));
+  cv::Mat press = reference.clone();
+  cv::circle(press, cv::Point(150, 120), 10, cv::Scalar(140, 140, 140), cv::FILLED);
+  cv::rectangle(press, cv::Rect(185, 90, 8, 60), cv::Scalar(110, 110, 110), cv::FILLED);
+  const auto region = FindImpressionRegion(press, reference);
+  REQUIRE(region);
+  CHECK((region->centroid - Eigen::Vector2d(150, 120)).norm() < 1.0);
+  CHECK(region->box.br().x < 165);
+}
+
 TEST_CASE("EstimateCamFromSensor: simulated impressions", "[pose]") {
   const auto rig = DefaultRig();
   const FisheyeCamera camera = SimGroundTruth::TrueCamera(*rig);
