@@ -23,19 +23,10 @@ using namespace std::chrono_literals;
 using Catch::Contains;
 using gs360::test::AtProbe;
 using gs360::test::RigFixture;
+using gs360::test::RunEvents;
 using gs360::test::StopAfter;
 
 namespace {
-
-// Every event message of the run, one per line.
-std::string Events(const RigFixture& f, std::int64_t run_id) {
-  RunDatabaseOptions ro;
-  ro.read_only = true;
-  RunDatabase db(f.db, ro);
-  std::string all;
-  for (const EventRecord& e : db.ListEvents(run_id, 0, 100000)) all += e.message + "\n";
-  return all;
-}
 
 // Talks to the virtual controller as a user at a terminal would (jogging by hand): trusts its
 // position and sends `lines`, waiting for each; then lets go of the port.
@@ -116,7 +107,7 @@ TEST_CASE("without homing: a run asks before its first move and after a controll
   const Eigen::Vector3d stood = f.rig->cnc().TruePositionNow();
   const Eigen::Vector3d believed = f.rig->cnc().ReportedPosition();
   CHECK((stood - believed).norm() > 1.0);  // MPos is wrong: any move now would be a crash
-  CHECK_THAT(Events(f, run_id), !Contains("$X"));
+  CHECK_THAT(RunEvents(f, run_id), !Contains("$X"));
   CHECK(RunDatabase(f.db).CountProbes(run_id).failed == 0);
 
   // A confirmation that answers another question is no confirmation.
@@ -149,14 +140,14 @@ TEST_CASE("grblHAL's homing lock without homing: asked, unlocked only when confi
   REQUIRE(asked.outcome == RunOutcome::kAwaiting);
   CHECK_THAT(asked.message,
              Contains("ALARM:11") && Contains("Homing required") && Contains("homing is off"));
-  CHECK_THAT(Events(f, run_id), !Contains("$X"));
+  CHECK_THAT(RunEvents(f, run_id), !Contains("$X"));
   // Confirmed: the unlock is said out loud, and grblHAL refuses it until homed (error:46): the
   // message says what to change.
   SessionOverrides confirm;
   confirm.confirm = "position";
   CHECK_THROWS_WITH(engine.Execute(run_id, confirm),
                     Contains("error:46") && Contains("home = true"));
-  CHECK_THAT(Events(f, run_id), Contains("unlocking the controller ($X)"));
+  CHECK_THAT(RunEvents(f, run_id), Contains("unlocking the controller ($X)"));
   CHECK(f.rig->cnc().TruePositionNow().norm() < 1e-9);
   CHECK(RunDatabase(f.db).GetRun(run_id)->state != RunState::kRunning);
 
@@ -176,7 +167,7 @@ TEST_CASE("a run killed mid-press backs out along the probe's axis before any tr
 
   const RunReport resumed = engine.Execute(run_id);
   CHECK(resumed.outcome == RunOutcome::kDone);
-  CHECK_THAT(Events(f, run_id),
+  CHECK_THAT(RunEvents(f, run_id),
              Contains("backed out along probe " + std::to_string(p.plan_index) + "'s axis"));
   CheckOneAttemptEach(f, run_id);
   CHECK(RunDatabase(f.db).CountProbes(run_id).failed <= 2);  // fin-hidden probes, not this one
@@ -215,7 +206,7 @@ TEST_CASE("a session killed while it homes: the next trusts the finished cycle, 
   SECTION("the $H was recorded: resumed, said in the events") {
     RunDatabase(f.db).MarkHomingSent(run_id);
     CHECK(engine.Execute(run_id).outcome == RunOutcome::kDone);
-    CHECK_THAT(Events(f, run_id), Contains("finished the homing cycle sent before"));
+    CHECK_THAT(RunEvents(f, run_id), Contains("finished the homing cycle sent before"));
     CheckOneAttemptEach(f, run_id);
   }
   SECTION("without it the same position is a stray move: asked") {
@@ -235,7 +226,7 @@ TEST_CASE("a reset at the bottom of a press is recovered without spending an att
   CHECK(r.outcome == RunOutcome::kDone);
   CHECK(r.recoveries >= 1);
   CHECK(f.rig->cnc().Stats().resets >= 1);
-  const std::string events = Events(f, run_id);
+  const std::string events = RunEvents(f, run_id);
   CHECK_THAT(events, Contains("position verified") && Contains("backed out along probe"));
   CheckOneAttemptEach(f, run_id);
   RunDatabase db(f.db);

@@ -19,17 +19,9 @@
 using namespace gs360;
 using Catch::Contains;
 using gs360::test::RigFixture;
+using gs360::test::RunEvents;
 
 namespace {
-
-std::string Events(const RigFixture& f, std::int64_t run_id) {
-  RunDatabaseOptions ro;
-  ro.read_only = true;
-  RunDatabase db(f.db, ro);
-  std::string all;
-  for (const EventRecord& e : db.ListEvents(run_id, 0, 100000)) all += e.message + "\n";
-  return all;
-}
 
 // LEDs high on the fins and dim, the lower gel lit by little but the blue ring, a noisier
 // camera: impressions near the base are a few DN in a frame whose noise is several.
@@ -99,7 +91,7 @@ TEST_CASE("under dim LEDs every weak but real impression counts", "[daemon][pres
     if (contrast < 1.4) ++weak;
   }
   CHECK(weak >= 5);
-  CHECK_THAT(Events(f, run_id), Contains("impression check: ") && Contains(" presses, "));
+  CHECK_THAT(RunEvents(f, run_id), Contains("impression check: ") && Contains(" presses, "));
 }
 
 TEST_CASE("a frozen camera fails every press, and each is pressed again", "[daemon][press_check]") {

@@ -16,6 +16,7 @@
 #include "daemon/run_config.h"
 #include "daemon/run_engine.h"
 #include "sim/virtual_rig.h"
+#include "storage/run_database.h"
 #include "tests/wait.h"
 
 namespace gs360::test {
@@ -75,6 +76,16 @@ inline void AtProbe(RunEngine& engine, std::int64_t after, std::function<void()>
 inline void StopAfter(RunEngine& engine, std::int64_t run_id, std::int64_t after) {
   AtProbe(engine, after, [&engine] { engine.RequestStop(); });
   REQUIRE(engine.Execute(run_id).outcome == RunOutcome::kStopped);
+}
+
+// Every event message of the run, one per line (the fixture's database, read-only).
+inline std::string RunEvents(const RigFixture& f, std::int64_t run_id) {
+  RunDatabaseOptions ro;
+  ro.read_only = true;
+  RunDatabase db(f.db, ro);
+  std::string all;
+  for (const EventRecord& e : db.ListEvents(run_id, 0, 100000)) all += e.message + "\n";
+  return all;
 }
 
 }  // namespace gs360::test
