@@ -138,6 +138,13 @@ bool NearExpected(const cv::Mat& magnitude, const cv::Mat& mask, const Eigen::Ve
                   const ImpressionCentroidOptions& options, double& peak, cv::Point& peak_at) {
   const double du = peak_at.x - expected.x(), dv = peak_at.y - expected.y();
   if (du * du + dv * dv <= options.search_radius_px * options.search_radius_px) return true;
+  // A pixel farther off the image than the radius has no neighbourhood in it (and would not fit
+  // the int that cv::circle takes).
+  const double r = options.search_radius_px;
+  if (expected.x() < -r || expected.y() < -r || expected.x() > magnitude.cols + r ||
+      expected.y() > magnitude.rows + r) {
+    return false;
+  }
   cv::Mat near = cv::Mat::zeros(magnitude.size(), CV_8U);
   cv::circle(near,
              cv::Point(static_cast<int>(std::lround(expected.x())),
@@ -192,6 +199,20 @@ std::optional<ImpressionRegion> FindImpressionRegion(
   options.Check();
   const cv::Mat magnitude =
       DifferenceMagnitude(press, reference, mask, options.blur_sigma_px, "FindImpressionRegion");
+  return FindImpressionRegionInMagnitude(magnitude, options, mask, expected_px);
+}
+
+std::optional<ImpressionRegion> FindImpressionRegionInMagnitude(
+    const cv::Mat& magnitude, const ImpressionCentroidOptions& options, const cv::Mat& mask,
+    const std::optional<Eigen::Vector2d>& expected_px) {
+  options.Check();
+  if (magnitude.empty() || magnitude.type() != CV_32F) {
+    throw std::invalid_argument("FindImpressionRegionInMagnitude: magnitude must be CV_32F");
+  }
+  if (!mask.empty() && (mask.type() != CV_8U || mask.size() != magnitude.size())) {
+    throw std::invalid_argument(
+        "FindImpressionRegionInMagnitude: mask must be CV_8U of the magnitude's size");
+  }
   double peak = 0.0;
   cv::Point peak_at;
   cv::minMaxLoc(magnitude, nullptr, &peak, nullptr, &peak_at);
@@ -200,17 +221,17 @@ std::optional<ImpressionRegion> FindImpressionRegion(
   if (peak < options.min_peak_dn) return std::nullopt;
   const float threshold =
       static_cast<float>(std::max(options.threshold_fraction * peak, options.min_threshold_dn));
-  const int usable = mask.empty() ? press.rows * press.cols : cv::countNonZero(mask);
+  const int usable = mask.empty() ? magnitude.rows * magnitude.cols : cv::countNonZero(mask);
   if (cv::countNonZero(magnitude > threshold) > options.max_area_fraction * usable) {
     return std::nullopt;
   }
   const int w = static_cast<int>(std::ceil(options.window_px));
   const cv::Rect window = cv::Rect(peak_at.x - w, peak_at.y - w, 2 * w + 1, 2 * w + 1) &
-                          cv::Rect(0, 0, press.cols, press.rows);
+                          cv::Rect(0, 0, magnitude.cols, magnitude.rows);
   const cv::Mat region = RegionAroundPeak(magnitude, window, peak_at, threshold, options.window_px);
   std::vector<cv::Point> points;
   double sw = 0.0, su = 0.0, sv = 0.0;
-  int u0 = press.cols, v0 = press.rows, u1 = -1, v1 = -1;
+  int u0 = magnitude.cols, v0 = magnitude.rows, u1 = -1, v1 = -1;
   for (int v = window.y; v < window.y + window.height; ++v) {
     const float* row = magnitude.ptr<float>(v);
     const std::uint8_t* in = region.ptr<std::uint8_t>(v - window.y);

@@ -22,6 +22,7 @@
 
 #include <Eigen/Core>
 #include <optional>
+#include <vector>
 
 #include <opencv2/core/mat.hpp>
 
@@ -74,8 +75,8 @@ struct ImpressionRegion {
   double peak_dn = 0.0;
   bool near_expected = false;  // the peak lies within search_radius_px of expected_px
   double area_px = 0.0;        // hull area
-  int pixels = 0;              // pixels above the threshold in the window
-  cv::Rect box;                // bounding box of those pixels
+  int pixels = 0;              // pixels in the region (above the threshold, connected to the peak)
+  cv::Rect box;                // bounding box of the region
 };
 
 // `press`, `reference`: CV_8UC3 of one size (std::invalid_argument otherwise); optional `mask`
@@ -90,9 +91,30 @@ std::optional<ImpressionRegion> FindImpressionRegion(
     const cv::Mat& press, const cv::Mat& reference, const ImpressionCentroidOptions& options = {},
     const cv::Mat& mask = cv::Mat(), const std::optional<Eigen::Vector2d>& expected_px = {});
 
+// The same on a change magnitude already computed and blurred (CV_32F, non-empty; what
+// FindImpressionRegion computes from the press and reference; std::invalid_argument otherwise).
+// calib/pose.h's bias model runs it on rendered imprints.
+std::optional<ImpressionRegion> FindImpressionRegionInMagnitude(
+    const cv::Mat& magnitude, const ImpressionCentroidOptions& options,
+    const cv::Mat& mask = cv::Mat(), const std::optional<Eigen::Vector2d>& expected_px = {});
+
 // Whether a run's nominal pose holds: at least half of its `found` impressions are `near` their
 // expected pixel. When it does, an impression found far from it is another change in its frame,
 // not the press; when it does not, the nominal pose is off and the pose fit sorts them out.
 bool NominalPoseHolds(int found, int near);
+
+// The run rule above over a run's impressions: when the nominal pose holds, each item `found` far
+// from its expected pixel (its `near` flag false) is set not found. Returns how many were.
+template <typename Item>
+int DropFarFromNominal(std::vector<Item>& items, bool Item::*found, bool Item::*near) {
+  int n_found = 0, n_near = 0;
+  for (const Item& item : items) {
+    n_found += item.*found ? 1 : 0;
+    n_near += item.*found && item.*near ? 1 : 0;
+  }
+  if (!NominalPoseHolds(n_found, n_near)) return 0;
+  for (Item& item : items) item.*found = item.*found && item.*near;
+  return n_found - n_near;
+}
 
 }  // namespace gs360

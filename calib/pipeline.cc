@@ -541,24 +541,6 @@ void Calibration::Intrinsics() {
   camera_.emplace(result_.intrinsics);
 }
 
-namespace {
-
-// Impressions found far from where the nominal pose puts their press are left out when the
-// nominal pose holds (NominalPoseHolds). Returns how many were left out.
-template <typename Found>
-int DropFarFromNominal(std::vector<Found>& found) {
-  int ok = 0, near = 0;
-  for (const Found& f : found) {
-    ok += f.ok ? 1 : 0;
-    near += f.ok && f.near ? 1 : 0;
-  }
-  if (!NominalPoseHolds(ok, near)) return 0;
-  for (Found& f : found) f.ok = f.ok && f.near;
-  return ok - near;
-}
-
-}  // namespace
-
 void Calibration::Impressions() {
   const auto blob = runner_.Run("impressions", Key("impressions"), [&](Json* metrics) {
     std::vector<Found> found(probes_.size());
@@ -573,7 +555,7 @@ void Calibration::Impressions() {
               Camera().ProjectUnchecked(inputs_.nominal_cam_from_sensor * probes_[k].point_sensor));
           if (imp) found[k] = {true, imp->centroid, imp->peak_dn, imp->pixels, imp->near_expected};
         });
-    (*metrics)["far_from_nominal_dropped"] = DropFarFromNominal(found);
+    (*metrics)["far_from_nominal_dropped"] = DropFarFromNominal(found, &Found::ok, &Found::near);
     std::vector<std::uint8_t> out;
     int ok = 0;
     for (const Found& f : found) {
@@ -617,7 +599,7 @@ void Calibration::Pose() {
       run_options.ball_radius_mm = inputs_.ball_radius;
       run_options.threads = options_.threads;
       r = EstimateCamFromSensor(Camera(), obs, inputs_.nominal_cam_from_sensor, run_options,
-                                PoseScene{&GelBvh(), FinBvh()});
+                                PoseScene{&GelBvh(), FinBvh(), options_.impression});
     } catch (const std::exception& e) {
       throw std::runtime_error(std::string("pose: ") + e.what());
     }

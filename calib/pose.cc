@@ -193,6 +193,39 @@ Eigen::Vector2d HullCentroid(const ProbeRender& pr) {
   return {m.m10 / m.m00, m.m01 / m.m00};
 }
 
+// The impression finder's centre (header comment, model_finder) of a rendered imprint: the finder
+// on the normal change |n - n0| of its contact pixels (0 elsewhere), blurred as the frames are, in
+// the render's box grown so that the blur and the finder's rays stay inside. The hull centroid
+// where the finder finds nothing.
+Eigen::Vector2d FinderCentroid(const ProbeRender& pr, const ImpressionCentroidOptions& finder) {
+  // The magnitude's scale is arbitrary: the finder's cuts are fractions of its maxima.
+  constexpr float kScale = 100.0f;
+  const int grow = 8 + static_cast<int>(std::ceil(3.0 * finder.blur_sigma_px));
+  cv::Mat magnitude = cv::Mat::zeros(pr.roi.height + 2 * grow, pr.roi.width + 2 * grow, CV_32F);
+  for (int y = 0; y < pr.contact.rows; ++y) {
+    const std::uint8_t* contact = pr.contact.ptr<std::uint8_t>(y);
+    const float* gx = pr.gx.ptr<float>(y);
+    const float* gy = pr.gy.ptr<float>(y);
+    float* out = magnitude.ptr<float>(y + grow) + grow;
+    for (int x = 0; x < pr.contact.cols; ++x) {
+      if (contact[x] == 0) continue;
+      // |n - n0|^2 = 2 - 2 n.n0, with n.n0 = 1 / sqrt(1 + gx^2 + gy^2) (render.h's slopes).
+      const float cos_turn = 1.0f / std::sqrt(1.0f + gx[x] * gx[x] + gy[x] * gy[x]);
+      out[x] = kScale * std::sqrt(std::max(0.0f, 2.0f - 2.0f * cos_turn));
+    }
+  }
+  if (finder.blur_sigma_px > 0.0) {
+    cv::GaussianBlur(magnitude, magnitude, cv::Size(), finder.blur_sigma_px);
+  }
+  ImpressionCentroidOptions rendered = finder;
+  rendered.min_peak_dn = 1e-3;
+  rendered.min_threshold_dn = 0.0;
+  rendered.max_area_fraction = 1.0;
+  const auto region = FindImpressionRegionInMagnitude(magnitude, rendered);
+  if (!region) return HullCentroid(pr);
+  return region->centroid + Eigen::Vector2d(pr.roi.x - grow, pr.roi.y - grow);
+}
+
 std::string FormatCondition(double c) {
   if (!std::isfinite(c)) return "infinite";
   char buf[32];
@@ -314,6 +347,7 @@ void CheckObservations(std::span<const PoseObservation> observations, const Pose
     throw std::invalid_argument(
         "EstimateCamFromSensor: PoseOptions.model_bias needs the gel mesh (PoseScene::gel)");
   }
+  if (options.model_bias && options.model_finder) scene.finder.Check();
   for (std::size_t i = 0; i < observations.size(); ++i) {
     const PoseObservation& o = observations[i];
     if (!o.contact_point_sensor.allFinite() || !o.ball_center_sensor.allFinite() ||
@@ -434,7 +468,7 @@ std::vector<PoseObservation> ChooseObservations(std::span<const PoseObservation>
 }
 
 // 4. One round of the bias model: each observation's offset from its contact point's projection
-// to the centroid of its imprint rendered under `pose` (0 where the render has no contact).
+// to the centre of its imprint rendered under `pose` (0 where the render has no contact).
 // `contact_px` (optional) receives each render's contact pixel count. Returns how many renders had
 // no contact.
 int BiasOffsets(const FisheyeCamera& camera, const Rigid3d& pose,
@@ -456,7 +490,9 @@ int BiasOffsets(const FisheyeCamera& camera, const Rigid3d& pose,
         empty[i] = 1;
         continue;
       }
-      (*offsets)[i] = HullCentroid(pr) - camera.ProjectUnchecked(pose * o.contact_point_sensor);
+      const Eigen::Vector2d centre =
+          options.model_finder ? FinderCentroid(pr, scene.finder) : HullCentroid(pr);
+      (*offsets)[i] = centre - camera.ProjectUnchecked(pose * o.contact_point_sensor);
     }
   };
   const std::size_t threads =

@@ -37,6 +37,14 @@
 // every probe's rigid imprint (calib/render.h) and takes bias_i = centroid of the rendered contact
 // - projection of the contact point; the next round fits projection + bias_i to the observed
 // centroids. A few rounds converge (the bias changes slowly with the pose).
+// The rendered centre (model_finder): the observed centre is where the impression finder puts it,
+// which is not the contact region's centroid: the finder blurs the change, cuts each direction at a
+// fraction of its own maximum, and the change is largest where the gel's normal turns most (the
+// imprint's rim) and least at its middle. So the finder (PoseScene::finder's options) is run on the
+// rendered imprint's normal change |n - n0|, blurred as the frames are, and its centre is the
+// prediction. The lighting's gain per direction is what the finder divides out; what remains is the
+// imprint's shape, its view angle and the lens. Without model_finder, the centroid of the convex
+// hull of the rendered contact pixels.
 //
 // Units and frames: mm, rad; points in the sensor frame; pixels as geometry/fisheye.h. The
 // intrinsics are given (stage 1's output) and not refined.
@@ -51,6 +59,7 @@
 #include <stdexcept>
 #include <vector>
 
+#include "calib/impression_centroid.h"
 #include "calib/render.h"
 #include "geometry/bvh.h"
 #include "geometry/fisheye.h"
@@ -93,8 +102,9 @@ struct PoseOptions {
   // The refined fit's condition number (PoseResult::condition) above this -> PoseError: the
   // impressions do not determine the pose (>= 1; infinity accepts any).
   double max_condition = 100.0;
-  bool model_bias = true;  // needs the gel mesh (PoseScene::gel)
-  int bias_rounds = 3;     // bias model: render / refit rounds (>= 1)
+  bool model_bias = true;    // needs the gel mesh (PoseScene::gel)
+  bool model_finder = true;  // bias model: the finder's centre of the rendered imprint (above)
+  int bias_rounds = 3;       // bias model: render / refit rounds (>= 1)
   // Bias model: an observation whose region (region_px) is more than this many times larger,
   // relative to its rendered imprint's contact, than the median observation's is left out (a
   // change spread far beyond one imprint: a faint press among the noise). 0 keeps all; else >= 1.
@@ -119,6 +129,7 @@ struct PoseOptions {
     visit("min_observations", self.min_observations);
     visit("max_condition", self.max_condition);
     visit("model_bias", self.model_bias);
+    visit("model_finder", self.model_finder);
     visit("bias_rounds", self.bias_rounds);
     visit("max_region_ratio", self.max_region_ratio);
     visit("ball_radius_mm", self.ball_radius_mm);
@@ -130,10 +141,13 @@ struct PoseOptions {
   void Check() const;
 };
 
-// The sensor's geometry, for the bias model (sensor frame; either may be null when unused).
+// The sensor's geometry, for the bias model (sensor frame; either may be null when unused), and
+// how the observed centres were found (the bias model's model_finder runs the same finder; its
+// floors in DN, min_peak_dn and min_threshold_dn, and max_area_fraction do not apply there).
 struct PoseScene {
   const Bvh* gel = nullptr;
   const Bvh* fins = nullptr;
+  ImpressionCentroidOptions finder;
 };
 
 struct PoseResult {
