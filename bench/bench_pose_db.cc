@@ -567,6 +567,13 @@ PoseResult PrintPoseEstimates(const Bench& b, const Observations& obs, const Pos
     const PoseResult r_hull = EstimateCamFromSensor(b.camera, obs.stored, nominal, hull, scene);
     PrintPose("  ... the rendered contact's hull centroid", r_hull, b.true_pose);
   }
+  for (double bound : {50.0, 55.0, 65.0, 70.0, 80.0}) {
+    PoseOptions alt = options;
+    alt.max_view_angle_deg = bound;
+    const std::string name = "  ... view bound " + std::to_string(static_cast<int>(bound));
+    PrintPose(name.c_str(), EstimateCamFromSensor(b.camera, obs.stored, nominal, alt, scene),
+              b.true_pose);
+  }
   {
     PoseOptions all = options;
     all.max_view_angle_deg = 90.0;

@@ -22,7 +22,9 @@
 // cannot predict shading, and on the cone these biased residuals straddle the outlier bound, so
 // the robust fit kept a biased subset and missed the rotation target. The refinement therefore
 // leaves them out (at least min_view_fraction of the observations are kept: the least oblique
-// ones).
+// ones). The bias model's finder centre (model_finder, below) predicts the imprints seen up to
+// ~60 deg well enough to keep them, which the bound's default follows (docs/benchmarks.md,
+// "Held-out rigs").
 // Face-on imprints: a centroid bias shared by the probes of a region of the gel is not seen in the
 // residuals when the pose can absorb it. On a dome seen face-on (every contact point about as far
 // from the camera, all of them near face-on) a bias along the image radius, the same on every
@@ -93,7 +95,7 @@ struct PoseOptions {
   // Refined fit: only observations seen at most this far from their normal (deg, (0, 90]; 90 =
   // all). If fewer than max(min_observations, ceil(min_view_fraction * n)) qualify, that many of
   // the least oblique are used instead (min_view_fraction in (0, 1]).
-  double max_view_angle_deg = 50.0;
+  double max_view_angle_deg = 60.0;
   double min_view_fraction = 0.25;
   // The view bound is released (the fit over every observation is kept instead) when the bounded
   // fit's inlier RMS is more than this many times the unbounded fit's. 0: never; else >= 1.

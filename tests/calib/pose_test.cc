@@ -350,6 +350,7 @@ TEST_CASE("EstimateCamFromSensor: oblique impressions are left out of the refine
   REQUIRE(obs.size() > 450);
   REQUIRE(oblique > 100);
   PoseOptions options;
+  options.max_view_angle_deg = 50.0;  // the planted band
   options.ball_radius_mm = rig.ball_radius();
   options.model_finder = false;  // the observations are the rendered contact's hull centroids
   const PoseScene scene{&rig.gel_bvh(), &rig.fin_bvh()};
