@@ -107,6 +107,7 @@ struct ThreadState {
   double mlp_s = 0.0, integration_s[kMethodCount] = {};
   std::vector<std::pair<int, ValidationExample>> examples;
   std::vector<std::pair<int, std::pair<Eigen::Vector3d, double>>> probe_errors;
+  std::vector<std::pair<int, Json>> probe_peaks;
 };
 
 // At most max_probes of the held-out probes: a seeded subset beyond, in plan order.
@@ -229,6 +230,7 @@ class ProbeEvaluator {
     pc.roi = region != nullptr ? region->roi : cv::Rect();
     const auto [probe_error_sum, probe_error_n] = AddPixelErrors(pc, st);
     AddPeakErrors(pc, st);
+    st->probe_peaks.push_back({plan_index, PeakRow(plan_index, probe, pc)});
     if (probe_error_n > 0) {
       st->probe_errors.push_back(
           {plan_index,
@@ -309,6 +311,27 @@ class ProbeEvaluator {
       }
     }
     return {probe_error_sum, probe_error_n};
+  }
+
+  // One row of validation.json's "probe_peaks": where the probe is, how its imprint is seen, and
+  // each method's peak indentation against each truth's (which probes make the peak error).
+  Json PeakRow(int plan_index, const ValidationProbe& probe, const ProbeCase& pc) const {
+    const Eigen::Vector3d& p = probe.contact_point_sensor;
+    const int u = static_cast<int>(std::lround(pc.render.contact_centroid.x()));
+    const int v = static_cast<int>(std::lround(pc.render.contact_centroid.y()));
+    const bool on_map = u >= 0 && v >= 0 && u < map_.width() && v < map_.height();
+    Json peaks = Json::object();
+    for (int m = 0; m < kMethodCount; ++m) {
+      peaks[kMethods[m]] = pc.roi.empty() ? Json(nullptr) : Number(pc.recs[m].peak_indentation_mm);
+    }
+    Json row = {{"plan_index", plan_index},
+                {"contact_point_mm", {p.x(), p.y(), p.z()}},
+                {"contact_pixels", pc.render.contact_pixels},
+                {"view_deg", on_map ? Number(map_.view_angle(u, v) * kRadToDeg) : Json(nullptr)},
+                {"peak_mm", peaks},
+                {"rigid_mm", pc.render.max_indentation_mm}};
+    if (pc.physical) row["physical_mm"] = pc.physical->PeakIndentation();
+    return row;
   }
 
   // Peak indentation errors per truth and method, in the bands of the probe's contact point.
@@ -402,8 +425,18 @@ ThreadState Merge(std::vector<ThreadState>& states) {
     for (int m = 0; m < kMethodCount; ++m) total.integration_s[m] += st.integration_s[m];
     for (auto& e : st.examples) total.examples.push_back(std::move(e));
     for (auto& e : st.probe_errors) total.probe_errors.push_back(e);
+    for (auto& e : st.probe_peaks) total.probe_peaks.push_back(std::move(e));
   }
   return total;
+}
+
+// validation.json's "probe_peaks", in plan order.
+Json ProbePeaks(std::vector<std::pair<int, Json>> rows) {
+  std::sort(rows.begin(), rows.end(),
+            [](const auto& a, const auto& b) { return a.first < b.first; });
+  Json out = Json::array();
+  for (auto& r : rows) out.push_back(std::move(r.second));
+  return out;
 }
 
 // validation.json's "results": per truth, method and band (bands no probe fell in left out).
@@ -488,6 +521,7 @@ ValidationResult Validate(const Reconstructor& rec, const std::vector<int>& held
       {"diagnostics", {"render_slopes"}},
       {"default_method", std::string(ToString(default_method))},
       {"results", BandResults(total.acc, n_truths)},
+      {"probe_peaks", ProbePeaks(std::move(total.probe_peaks))},
       {"ms_per_probe", ms_per_probe},
       {"seconds", std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count()},
   };

@@ -17,7 +17,8 @@
 // point), view angle band (the pixel's: < 30, 30-50, > 50 deg), fins (probe's contact point
 // within fin_near_mm of a fin plane: "near_fins" / "far_from_fins"). Per band: pixels, mean and
 // 95th percentile depth error (mm), median normal error (deg), mean |peak indentation error|
-// (mm, per probe: the band of its contact point).
+// (mm, per probe: the band of its contact point). validation.json's "probe_peaks" lists every
+// evaluated probe's peak per method and truth, its rendered imprint's pixels and view angle.
 
 #include <Eigen/Core>
 #include <array>

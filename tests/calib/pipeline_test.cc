@@ -134,6 +134,22 @@ TEST_CASE(
               .at("peak_bias_mm")
               .is_number());
   }
+  // One row per evaluated probe, in plan order, with every method's peak against the truth's.
+  const auto& peaks = first.validation.at("probe_peaks");
+  REQUIRE(peaks.size() == first.validation.at("probes_evaluated").get<std::size_t>());
+  int last_index = -1, with_peak = 0;
+  for (const auto& row : peaks) {
+    CHECK(row.at("plan_index").get<int>() > last_index);
+    last_index = row.at("plan_index").get<int>();
+    CHECK(row.at("contact_pixels").get<int>() > 0);
+    CHECK(row.at("rigid_mm").get<double>() > 0.0);
+    CHECK(row.at("contact_point_mm").size() == 3);
+    for (const char* method : {"heightfield", "discontinuity", "poisson", "render_slopes"}) {
+      CHECK(row.at("peak_mm").contains(method));
+    }
+    if (row.at("peak_mm").at("heightfield").is_number()) ++with_peak;
+  }
+  CHECK(with_peak > 0);
   // The pose moved from the nominal toward the (hidden) truth: the sim's camera is 0.3 mm / 1 deg
   // off.
   CHECK(TranslationDifferenceMm(first.cam_from_sensor, s.inputs.nominal_cam_from_sensor) > 0.05);
