@@ -71,6 +71,9 @@ void DatasetOptions::Check() const {
   if (!(edge_exclusion_mm >= 0.0 && edge_exclusion_mm <= 2.0)) {
     Bad("edge_exclusion_mm", edge_exclusion_mm, "in [0, 2] mm");
   }
+  if (small_probe_repeat < 1 || small_probe_repeat > 16) {
+    Bad("small_probe_repeat", small_probe_repeat, "in [1, 16]");
+  }
 }
 
 int DatasetOptions::ContactSamplesPerProbe(std::size_t probes) const {
@@ -119,6 +122,14 @@ std::vector<Split> SplitProbes(std::span<const std::int32_t> probes,
   return split;
 }
 
+namespace {
+// Cycles through `pts` (already in random order) until it holds `n` points; empty stays empty.
+void Repeat(std::vector<cv::Point>* pts, std::size_t n) {
+  const std::size_t have = pts->size();
+  for (std::size_t i = 0; have > 0 && pts->size() < n; ++i) pts->push_back((*pts)[i % have]);
+}
+}  // namespace
+
 std::size_t AppendProbeSamples(const cv::Mat& diff, const ProbeRender& render, int plan_index,
                                const DatasetOptions& options, Dataset* out,
                                const cv::Mat& penetration, const cv::Mat& context) {
@@ -159,10 +170,17 @@ std::size_t AppendProbeSamples(const cv::Mat& diff, const ProbeRender& render, i
     }
     pts.resize(k);
   };
-  take(contact, static_cast<std::size_t>(options.max_contact_samples_per_probe));
+  const std::size_t cap = static_cast<std::size_t>(options.max_contact_samples_per_probe);
+  const std::size_t seen = std::min(cap, contact.size());
+  const std::size_t wanted =
+      std::min(cap, seen * static_cast<std::size_t>(options.small_probe_repeat));
+  take(contact, seen);
+  Repeat(&contact, wanted);
   const double f = options.non_contact_fraction;
-  take(other,
-       static_cast<std::size_t>(std::llround(f / (1.0 - f) * static_cast<double>(contact.size()))));
+  const std::size_t other_wanted =
+      static_cast<std::size_t>(std::llround(f / (1.0 - f) * static_cast<double>(contact.size())));
+  take(other, other_wanted);
+  Repeat(&other, other_wanted);
 
   const Eigen::Index start = out->x.cols();
   const Eigen::Index count = static_cast<Eigen::Index>(contact.size() + other.size());

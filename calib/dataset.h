@@ -50,6 +50,11 @@ struct DatasetOptions {
   // inside, zero just outside) contradict what the camera sees, and fitting them pulls every
   // prediction toward the mean. 0 keeps every pixel. [0, 2] mm.
   double edge_exclusion_mm = 0.0;
+  // A probe with fewer contact pixels than the cap (an imprint seen small: far from the camera,
+  // or at a steep view angle) has its samples repeated up to this many times, not beyond the
+  // cap, so that it weighs in training nearer to what it weighs in validation (one probe, one
+  // peak). 1 = every pixel once. [1, 16].
+  int small_probe_repeat = 2;
   template <typename Self, typename Visitor>
   static void Fields(Self& self, Visitor& visit) {
     visit("max_contact_samples_per_probe", self.max_contact_samples_per_probe);
@@ -60,6 +65,7 @@ struct DatasetOptions {
     visit("test_fraction", self.test_fraction);
     visit("seed", self.seed);
     visit("edge_exclusion_mm", self.edge_exclusion_mm);
+    visit("small_probe_repeat", self.small_probe_repeat);
   }
   void Check() const;  // throws std::invalid_argument naming the field and value
   // The contact-sample cap per probe for a dataset of `probes` probes with contact:

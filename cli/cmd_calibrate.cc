@@ -67,6 +67,10 @@ void AddOptions(CLI::App* cmd, Json* r) {
                         "MLP hidden layer widths, comma separated (default: 128,128,128)", r);
   Key<int>(cmd, "--samples-per-probe", "samples_per_probe",
            "Contact pixels sampled per probe for training at most (default: 500)", r);
+  Key<int>(cmd, "--small-probe-repeat", "small_probe_repeat",
+           "Times a probe with fewer contact pixels than the cap is sampled, up to the cap "
+           "(default 2; 1 = each pixel once)",
+           r);
   Key<std::int64_t>(cmd, "--max-samples", "max_samples",
                     "Training samples in all at most (default: 1200000; 0 = no limit)", r);
   Key<double>(cmd, "--edge-exclusion", "edge_exclusion",

@@ -68,6 +68,7 @@ ConfigError CalibrationRequestError(const std::string& where, const std::string&
       {"TrainOptions.hidden", "hidden"},
       {"DatasetOptions.max_contact_samples_per_probe", "samples_per_probe"},
       {"DatasetOptions.max_samples", "max_samples"},
+      {"DatasetOptions.small_probe_repeat", "small_probe_repeat"},
       {"DatasetOptions.edge_exclusion_mm", "edge_exclusion"},
       {"HeightFieldOptions.min_view_angle_deg", "hf_min_view_angle"},
       {"DifferenceOptions.context_sigmas_px", "context_sigmas"},
@@ -110,6 +111,7 @@ void ReadCalibrationRequest(JsonReader& r, CalibrationOptions& o) {
   r.Get("hidden", o.train.hidden);
   r.Get("samples_per_probe", o.dataset.max_contact_samples_per_probe, IntRange{1, 1000000});
   r.Get("max_samples", o.dataset.max_samples);
+  r.Get("small_probe_repeat", o.dataset.small_probe_repeat, IntRange{1, 16});
   r.Get("edge_exclusion", o.dataset.edge_exclusion_mm);
   std::string integration;
   r.Get("integration", integration);

@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <cstring>
+#include <map>
 #include <set>
 
 #include "base/hash.h"
@@ -148,6 +149,7 @@ TEST_CASE("dataset: pixels near the rigid imprint's edge are left out when asked
           0.1f * (12.0f - std::hypot(static_cast<float>(x - 20), static_cast<float>(y - 20)));
   DatasetOptions o;
   o.max_contact_samples_per_probe = 1000;
+  o.small_probe_repeat = 1;  // counts pixels, not samples
   o.edge_exclusion_mm = 0.25;
   Dataset d;
   const std::size_t n = AppendProbeSamples(diff, r, 7, o, &d, pen);
@@ -231,4 +233,56 @@ TEST_CASE("dataset: the sample budget lowers the per-probe cap for large runs on
   CHECK(o.ContactSamplesPerProbe(10000) == 250);
   o.max_samples = -1;
   CHECK_THROWS_WITH(o.Check(), Catch::Contains("max_samples"));
+}
+
+TEST_CASE("dataset: a small imprint's samples are repeated, up to the cap and every pixel alike",
+          "[calib][dataset]") {
+  cv::Mat diff(240, 320, CV_32FC3, cv::Scalar(0.1f, 0.2f, 0.3f));
+  const ProbeRender small = DiscRender(5);  // 81 contact pixels
+  REQUIRE(small.contact_pixels == 81);
+  DatasetOptions o;
+  o.max_contact_samples_per_probe = 500;
+  auto contact_counts = [&](const DatasetOptions& opt, const ProbeRender& r) {
+    Dataset d;
+    AppendProbeSamples(diff, r, 7, opt, &d);
+    std::map<std::pair<int, int>, int> seen;
+    int other = 0;
+    for (std::size_t i = 0; i < d.probe.size(); ++i) {
+      const auto c = static_cast<Eigen::Index>(i);
+      if (d.contact[i]) {
+        ++seen[{static_cast<int>(d.x(0, c)), static_cast<int>(d.x(1, c))}];
+      } else {
+        ++other;
+      }
+    }
+    return std::make_pair(seen, other);
+  };
+  o.small_probe_repeat = 1;
+  const auto [once, other_once] = contact_counts(o, small);
+  CHECK(once.size() == 81);
+  for (const auto& [px, n] : once) CHECK(n == 1);
+  o.small_probe_repeat = 4;
+  const auto [four, other_four] = contact_counts(o, small);
+  CHECK(four.size() == 81);
+  for (const auto& [px, n] : four) CHECK(n == 4);
+  // The non-contact share stays about a quarter of the probe's samples.
+  CHECK(static_cast<double>(other_four) / (other_four + 4 * 81) == Approx(0.25).margin(0.01));
+  CHECK(other_four > other_once);
+  // Near the cap: repeated only up to it, no pixel more than once beyond the others.
+  o.max_contact_samples_per_probe = 100;
+  const auto [capped, other_capped] = contact_counts(o, small);
+  int total = 0;
+  for (const auto& [px, n] : capped) {
+    total += n;
+    CHECK(n >= 1);
+    CHECK(n <= 2);
+  }
+  CHECK(total == 100);
+  // A large imprint is unchanged by the option.
+  DatasetOptions large = o;
+  large.small_probe_repeat = 1;
+  CHECK(contact_counts(o, DiscRender(12)).first == contact_counts(large, DiscRender(12)).first);
+  DatasetOptions bad;
+  bad.small_probe_repeat = 0;
+  CHECK_THROWS_WITH(bad.Check(), Catch::Contains("small_probe_repeat"));
 }

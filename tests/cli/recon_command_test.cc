@@ -285,7 +285,9 @@ TEST_CASE("the fast path's slopes: only in the height field's window, every pixe
   const cv::Rect column(window.x + window.width / 2, window.y, 1, window.height);
   const cv::Mat thin = bundle.MakeReconstructor(2).PredictSlopes(d.difference, region.roi, column);
   const cv::Rect column_in = column - region.roi.tl();
-  CHECK(cv::norm(thin(column_in), all(column_in), cv::NORM_INF) < 1e-4);
+  // The same pixels through the float MLP in batches of another shape round differently (by
+  // 1.3e-4 on one model); the bilinear grid above is off by 0.05 and more.
+  CHECK(cv::norm(thin(column_in), all(column_in), cv::NORM_INF) < 1e-3);
   // Past its own grow_fraction the window is the whole region, as before the window existed.
   IntegrationOptions whole = integration;
   whole.height_field.window_grow_fraction = bundle.reconstruction.detection.grow_fraction;
