@@ -100,7 +100,10 @@ Acquisition Acquire(const HeldoutRig& rig, const RunConfig& config,
               {"machine_h", plan.estimate.Total() / 3600.0},
               {"gaps", plan.coverage_gaps.size()},
               {"largest_gap",
-               plan.coverage_gaps.empty() ? std::string() : plan.coverage_gaps[0].Describe()}};
+               plan.coverage_gaps.empty() ? std::string() : plan.coverage_gaps[0].Describe()},
+              {"small_imprints", plan.small_imprints.probes},
+              {"small_imprints_share", plan.small_imprints.Share()},
+              {"advice", PlanAdvice(plan)}};
     row.update(p);
     std::ofstream out(state);
     out << Json{{"run_id", a.run_id}, {"plan", p}}.dump() << "\n";

@@ -176,6 +176,23 @@ std::string DropAdvice(DropReason reason, const PlanReach* reach) {
   return "";
 }
 
+// Said when at least 5 % of the probes will be seen too small to measure their depth well; over
+// 10 % the peak target, a mean over probes, cannot be met (0.2 mm on that share alone).
+std::string SmallImprintAdvice(const SmallImprints& s) {
+  const double share = s.Share();
+  if (s.probes == 0 || share < 0.05) return {};
+  return std::to_string(s.probes) + " of " + std::to_string(s.seen) + " probes (" +
+         FormatFixed(100.0 * share, 0) + " %), at z " + FormatFixed(s.z_min_mm, 1) + "-" +
+         FormatFixed(s.z_max_mm, 1) + " mm, will leave imprints the camera sees in under " +
+         FormatFixed(kMinImprintPixels, 0) + " px (median " + FormatFixed(s.median_px, 0) +
+         " px): their peak depth is measured only to 0.1-0.3 mm, so " +
+         (share > 0.1 ? "this rig cannot be expected to meet the peak target (0.05 mm, a mean "
+                        "over probes)"
+                      : "the peak target (0.05 mm) has little margin") +
+         ". That part of the gel is far from the camera or seen edge-on; a camera nearer it, or "
+         "a lens with a narrower field, shows it larger.";
+}
+
 }  // namespace
 
 std::vector<std::string> PlanAdvice(const DropCounts& dropped, int kept, int candidates,
@@ -218,6 +235,9 @@ std::vector<std::string> PlanAdvice(const ProbePlan& plan) {
              : ". A longer plan.machine_hours or faster feeds give more."));
   }
   for (std::string& line : PlanAdvice(plan.dropped, kept, plan.candidates, &plan.reach)) {
+    advice.push_back(std::move(line));
+  }
+  if (std::string line = SmallImprintAdvice(plan.small_imprints); !line.empty()) {
     advice.push_back(std::move(line));
   }
   return advice;
@@ -1181,6 +1201,13 @@ ProbePlan PlanForCandidates(const RigGeometry& rig, const PlanOptions& options) 
     if (!p.travel_machine.empty()) ++plan.detoured_moves;
   }
   CheckTravel(plan, options.machine, 0.0);
+  std::vector<Eigen::Vector3d> points, normals;
+  for (const PlannedProbe& p : plan.probes) {
+    points.push_back(p.point_sensor);
+    normals.push_back(p.normal_sensor);
+  }
+  plan.small_imprints = FindSmallImprints(FisheyeCamera(rig.camera), rig.cam_from_sensor, points,
+                                          normals, options.ball_radius, options.press_depth);
   plan.planning_seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return plan;
@@ -1381,6 +1408,13 @@ nlohmann::json PlanSummaryJson(const ProbePlan& plan, const PlanOptions& options
       {"dropped_total", plan.dropped.Total()},
       {"advice", PlanAdvice(plan)},
       {"coverage_gaps", CoverageGapsJson(plan.coverage_gaps)},
+      {"small_imprints",
+       {{"probes", plan.small_imprints.probes},
+        {"seen", plan.small_imprints.seen},
+        {"below_px", kMinImprintPixels},
+        {"z_min_mm", plan.small_imprints.z_min_mm},
+        {"z_max_mm", plan.small_imprints.z_max_mm},
+        {"median_px", plan.small_imprints.median_px}}},
       {"waypoints", plan.waypoints},
       {"detoured_moves", plan.detoured_moves},
       {"estimate", EstimateJson(plan.estimate)},

@@ -57,6 +57,7 @@
 #include "geometry/shapes.h"
 #include "plan/coverage.h"
 #include "plan/drop_reason.h"
+#include "plan/imprint.h"
 #include "plan/motion_estimate.h"
 #include "plan/surface_distance.h"
 #include "rig/rig_config.h"
@@ -269,6 +270,7 @@ struct ProbePlan {
   double nearest_neighbour_s = 0.0;      // total estimate after the nearest-neighbour tour only
   double planning_seconds = 0.0;         // wall time of MakeProbePlan
   std::string options_hash;              // Hasher over rig + options (for storage keys)
+  SmallImprints small_imprints;          // probes the nominal camera will see small (imprint.h)
   // Sampling-order total over run-order total (> 1: the tour is faster).
   double TourGain() const;
 };
