@@ -99,6 +99,12 @@ TEST_CASE("bench heldout runs each rig end to end, one row each, and resumes", "
     CHECK_FALSE(row.contains("error"));
     CHECK(row["planned"].get<int>() > 20);
     CHECK(row["captured"].get<int>() + row["failed"].get<int>() == row["planned"].get<int>());
+    // Of the failed presses, those that left no usable mark even without noise (the
+    // simulator's noise-free frames), and each one's mark.
+    CHECK(row["failed_no_mark"].get<int>() >= 0);
+    CHECK(row["failed_no_mark"].get<int>() <= row["failed"].get<int>());
+    CHECK(static_cast<int>(row["failed_mark_dn"].size()) ==
+          row["failed_by_reason"].value("impression", 0));
     // Sized to the machine time asked for.
     CHECK(row["machine_h"].get<double>() <= 0.03);
     CHECK(row["machine_h"].get<double>() > 0.02);
@@ -115,7 +121,8 @@ TEST_CASE("bench heldout runs each rig end to end, one row each, and resumes", "
   INFO(again.out);
   REQUIRE(again.status == 0);
   CHECK_THAT(again.out, !Contains("[1/") && Contains("| rig-3 |") && Contains("| rig-7 |") &&
-                            Contains("of 2 rigs meet every target"));
+                            Contains("of 2 rigs meet every target") &&
+                            Contains("of those that left a usable mark"));
   // A bad seed list is a usage error naming it.
   const auto bad = Gs360("bench heldout --seeds 4-x --out " + (dir / "bad.jsonl").string());
   CHECK(bad.status != 0);
