@@ -9,6 +9,8 @@
 #include <map>
 #include <random>
 
+#include <nlohmann/json.hpp>
+
 #include "calib/pipeline.h"
 #include "sim/rig_model.h"
 #include "sim/tactile_camera.h"
@@ -95,6 +97,32 @@ std::map<std::string, bool> Cached(const CalibrationResult& r) {
   return m;
 }
 
+// What validation.json holds: every integrator (the height field the default), and one row
+// per evaluated probe, in plan order, with every method's peak against the truth's.
+void CheckValidationShape(const nlohmann::json& validation) {
+  CHECK(validation.at("default_method") == "heightfield");
+  for (const char* method : {"heightfield", "discontinuity", "poisson", "render_slopes"}) {
+    INFO(method);
+    CHECK(validation.at("results").at("rigid").at(method).at("all").at("pixels").get<int>() > 0);
+    CHECK(validation.at("results").at("rigid").at(method).at("all").at("peak_bias_mm").is_number());
+  }
+  const auto& peaks = validation.at("probe_peaks");
+  REQUIRE(peaks.size() == validation.at("probes_evaluated").get<std::size_t>());
+  int last_index = -1, with_peak = 0;
+  for (const auto& row : peaks) {
+    CHECK(row.at("plan_index").get<int>() > last_index);
+    last_index = row.at("plan_index").get<int>();
+    CHECK(row.at("contact_pixels").get<int>() > 0);
+    CHECK(row.at("rigid_mm").get<double>() > 0.0);
+    CHECK(row.at("contact_point_mm").size() == 3);
+    for (const char* method : {"heightfield", "discontinuity", "poisson", "render_slopes"}) {
+      CHECK(row.at("peak_mm").contains(method));
+    }
+    if (row.at("peak_mm").at("heightfield").is_number()) ++with_peak;
+  }
+  CHECK(with_peak > 0);
+}
+
 }  // namespace
 
 TEST_CASE(
@@ -121,35 +149,7 @@ TEST_CASE(
   CHECK(std::filesystem::exists(first.model_path));
   CHECK(std::filesystem::exists(first.onnx_path));
   CHECK(std::filesystem::exists(first.report_path));
-  // Every integrator is reported, the height field as the default.
-  CHECK(first.validation.at("default_method") == "heightfield");
-  for (const char* method : {"heightfield", "discontinuity", "poisson", "render_slopes"}) {
-    INFO(method);
-    CHECK(first.validation.at("results").at("rigid").at(method).at("all").at("pixels").get<int>() >
-          0);
-    CHECK(first.validation.at("results")
-              .at("rigid")
-              .at(method)
-              .at("all")
-              .at("peak_bias_mm")
-              .is_number());
-  }
-  // One row per evaluated probe, in plan order, with every method's peak against the truth's.
-  const auto& peaks = first.validation.at("probe_peaks");
-  REQUIRE(peaks.size() == first.validation.at("probes_evaluated").get<std::size_t>());
-  int last_index = -1, with_peak = 0;
-  for (const auto& row : peaks) {
-    CHECK(row.at("plan_index").get<int>() > last_index);
-    last_index = row.at("plan_index").get<int>();
-    CHECK(row.at("contact_pixels").get<int>() > 0);
-    CHECK(row.at("rigid_mm").get<double>() > 0.0);
-    CHECK(row.at("contact_point_mm").size() == 3);
-    for (const char* method : {"heightfield", "discontinuity", "poisson", "render_slopes"}) {
-      CHECK(row.at("peak_mm").contains(method));
-    }
-    if (row.at("peak_mm").at("heightfield").is_number()) ++with_peak;
-  }
-  CHECK(with_peak > 0);
+  CheckValidationShape(first.validation);
   // The pose moved from the nominal toward the (hidden) truth: the sim's camera is 0.3 mm / 1 deg
   // off.
   CHECK(TranslationDifferenceMm(first.cam_from_sensor, s.inputs.nominal_cam_from_sensor) > 0.05);

@@ -204,7 +204,10 @@ TEST_CASE(
       {R"({"fourier": 3000000000})", "fourier"},
       {R"({"smooth_sigma": 1e300})", "smooth_sigma"},
       {R"({"board_cols": 1.5})", "board_cols"},
-      {R"({"max_validation_probes": 0})", "max_validation_probes"}};
+      {R"({"max_validation_probes": 0})", "max_validation_probes"},
+      {R"({"small_probe_repeat": 0})", "small_probe_repeat"},
+      {R"({"small_probe_repeat": 17})", "small_probe_repeat"},
+      {R"({"small_probe_repeat": "twice"})", "small_probe_repeat"}};
   for (const auto& [body, field] : calibrate_cases) {
     INFO(body);
     const auto r = c.Post("/api/v1/runs/1/calibrate", body, "application/json");
