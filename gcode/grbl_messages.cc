@@ -1,52 +1,18 @@
 #include "gcode/grbl_messages.h"
 
 #include <algorithm>
-#include <charconv>
 #include <span>
-#include <system_error>
+
+#include "gcode/reply_text.h"
 
 namespace gs360 {
 namespace {
 
-bool StartsWith(std::string_view s, std::string_view p) {
-  return s.substr(0, p.size()) == p;
-}
-
-bool EndsWith(std::string_view s, std::string_view p) {
-  return s.size() >= p.size() && s.substr(s.size() - p.size()) == p;
-}
-
-std::string_view Trim(std::string_view s) {
-  while (!s.empty() && s.front() == ' ') s.remove_prefix(1);
-  while (!s.empty() && s.back() == ' ') s.remove_suffix(1);
-  return s;
-}
-
-template <typename T>
-std::optional<T> ParseNumber(std::string_view s) {
-  s = Trim(s);
-  if (s.empty()) return std::nullopt;
-  // from_chars rejects a leading '+'; GRBL never sends one but other firmwares might.
-  if (s.front() == '+') s.remove_prefix(1);
-  T value{};
-  const auto [ptr, ec] = std::from_chars(s.data(), s.data() + s.size(), value);
-  if (ec != std::errc() || ptr != s.data() + s.size()) return std::nullopt;
-  return value;
-}
-
-std::vector<std::string_view> Split(std::string_view s, char sep) {
-  std::vector<std::string_view> parts;
-  std::size_t start = 0;
-  while (true) {
-    const auto pos = s.find(sep, start);
-    if (pos == std::string_view::npos) {
-      parts.push_back(s.substr(start));
-      return parts;
-    }
-    parts.push_back(s.substr(start, pos - start));
-    start = pos + 1;
-  }
-}
+using reply_text::EndsWith;
+using reply_text::ParseNumber;
+using reply_text::Split;
+using reply_text::StartsWith;
+using reply_text::Trim;
 
 std::optional<std::vector<double>> ParseNumberList(std::string_view s) {
   std::vector<double> values;
