@@ -291,9 +291,9 @@ std::string Summary(const std::vector<Json>& rows) {
     const int failed = r.value("failed", 0);
     const int pressed = r.value("captured", 0) + failed;
     const double lost = pressed > 0 ? 100.0 * failed / pressed : 0.0;
-    // Of the presses whose mark the true camera shows: those the check should have counted.
-    const int hidden = r.value("failed_no_mark", 0);
-    const double shown = pressed > hidden ? 100.0 * (failed - hidden) / (pressed - hidden) : 0.0;
+    // Of the presses that left a usable mark: those the check should have counted.
+    const int no_mark = r.value("failed_no_mark", 0);
+    const double shown = pressed > no_mark ? 100.0 * (failed - no_mark) / (pressed - no_mark) : 0.0;
     worst_lost = std::max(worst_lost, lost);
     worst_shown = std::max(worst_shown, shown);
     if (lost > 1.0) ++lost_over_1pct;
