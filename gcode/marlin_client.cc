@@ -80,7 +80,10 @@ MarlinInfo MarlinClient::Connect() {
     const auto m = ReadLine(std::chrono::milliseconds(50));
     if (m && m->kind == MarlinMessageKind::kStart) info_.rebooted_on_open = true;
   }
-  while (ReadLine(options_.boot_quiet)) {
+  // The boot messages' end, within a second boot_timeout: a line that never goes quiet (noise,
+  // a flood of reports) is not waited for forever.
+  const auto quiet_until = Clock::now() + options_.boot_timeout;
+  while (Clock::now() < quiet_until && ReadLine(options_.boot_quiet)) {
   }
   stream_.Restart();
   for (const MarlinMessage& m : Execute("M115", options_.reply_timeout).messages) {
@@ -118,11 +121,13 @@ MarlinReply MarlinClient::Execute(std::string_view command, std::chrono::millise
   while (true) {
     while (const auto line = stream_.NextToWrite()) WriteLine(*line);
     const auto m = ReadLine(std::chrono::milliseconds(50));
+    // Checked whatever arrives: a printer that only ever says it is busy, or a line full of
+    // garbage, must not hold the call past its time.
+    if (Clock::now() > deadline) {
+      throw MarlinError(MarlinError::Kind::kTimeout,
+                        what + " not done within " + std::to_string(timeout.count()) + " ms");
+    }
     if (!m) {
-      if (Clock::now() > deadline) {
-        throw MarlinError(MarlinError::Kind::kTimeout,
-                          what + " not done within " + std::to_string(timeout.count()) + " ms");
-      }
       if (Clock::now() - last_heard < options_.reply_timeout) continue;
       if (++retries > options_.max_retries) {
         throw MarlinError(MarlinError::Kind::kTimeout,

@@ -47,9 +47,12 @@ void FakeMarlin::Serve() {
     Reply("echo: Last Updated: 2023-07-16 | Author: (none, default config)");
   }
   std::string partial;
+  bool asked = false;
   while (!stop_) {
+    if (options_.busy_forever && asked) Reply("echo:busy: processing");  // every 20 ms
     pollfd p{pty_.master_fd(), POLLIN, 0};
     if (::poll(&p, 1, 20) <= 0 || !(p.revents & POLLIN)) continue;
+    asked = true;
     char buf[256];
     const ssize_t n = ::read(pty_.master_fd(), buf, sizeof buf);
     for (ssize_t i = 0; i < n; ++i) {
@@ -68,7 +71,7 @@ void FakeMarlin::Line(std::string line) {
     Reply("Error:Printer halted. kill() called!");
     return;
   }
-  if (halted_) return;  // a halted Marlin answers nothing
+  if (halted_ || options_.busy_forever) return;  // a halted Marlin answers nothing
   const auto refuse = [&](const std::string& why) {
     Reply("Error:" + why + ", Last Line: " + std::to_string(last_));
     Reply("Resend: " + std::to_string(last_ + 1));

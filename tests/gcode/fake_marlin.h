@@ -22,6 +22,7 @@ struct FakeMarlinOptions {
   int garble_line = -1;        // this line number arrives with a bit flipped, once
   int drop_ok_line = -1;       // this line number's ok is lost, once
   int reboot_at_line = -1;     // this line number reboots the board instead of running, once
+  bool busy_forever = false;   // answers every line with "echo:busy: processing", never ok
 };
 
 class FakeMarlin {

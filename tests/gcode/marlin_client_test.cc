@@ -95,3 +95,20 @@ TEST_CASE("MarlinClient: a reboot mid-run and a halt stop it with what to do", "
   }
   CHECK_THROWS_WITH(client->Execute("G1 Z6", milliseconds(100)), Catch::Contains("M999"));
 }
+
+TEST_CASE("MarlinClient: a printer that only ever says it is busy does not hold a call forever",
+          "[gcode][marlin]") {
+  FakeMarlinOptions o;
+  o.reboot_on_open = false;
+  o.busy_forever = true;  // a keep-alive every 20 ms, never an ok
+  FakeMarlin printer(o);
+  auto client = Open(printer);
+  // Connect's first line (M115) never gets its ok: the busy flood must not keep the call alive.
+  try {
+    client->Connect();
+    FAIL("no time-out");
+  } catch (const MarlinError& e) {
+    CHECK(e.kind() == MarlinError::Kind::kTimeout);
+    CHECK_THAT(e.what(), Catch::Contains("M115") && Catch::Contains("not done within"));
+  }
+}
