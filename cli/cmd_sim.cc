@@ -45,7 +45,17 @@ InstanceLock LockSimPath(const std::string& path, const std::string& what, const
   }
 }
 
+// "grbl", "grblhal", "marlin" -> the virtual controller's firmware.
+CncFirmware ParseFirmware(const std::string& name) {
+  if (name == "grbl") return CncFirmware::kGrbl11h;
+  if (name == "grblhal") return CncFirmware::kGrblHal;
+  if (name == "marlin") return CncFirmware::kMarlin;
+  throw ClientError("--firmware: unknown firmware '" + name + "' (grbl, grblhal or marlin)",
+                    kExitUsage);
+}
+
 struct SimOptions {
+  std::string firmware = "grbl";
   double time_scale = 1.0;
   int rx_buffer = 128;
   std::string symlink;
@@ -60,7 +70,14 @@ struct SimOptions {
 void RegisterSimCommands(CLI::App& app, CommandContext& ctx) {
   static SimOptions o;
   auto* cnc = app.add_subcommand(
-      "sim-cnc", "Serve a virtual GRBL 1.1 CNC on a pseudo-terminal (prints its path)");
+      "sim-cnc",
+      "Serve a virtual GRBL 1.1 CNC (or grblHAL, or a Marlin printer) on a pseudo-terminal "
+      "(prints its path)");
+  cnc->add_option("--firmware", o.firmware,
+                  "grbl (GRBL 1.1h), grblhal, or marlin (a Marlin 2.1 printer of the Ender-3 "
+                  "class: 235 x 235 x 250 mm, Z at 5 mm/s)")
+      ->check(CLI::IsMember({"grbl", "grblhal", "marlin"}))
+      ->capture_default_str();
   cnc->add_option("--time-scale", o.time_scale, "Machine seconds per wall second (0 = instant)")
       ->capture_default_str();
   cnc->add_option("--rx-buffer", o.rx_buffer, "Receive buffer bytes reported by $I")
@@ -72,6 +89,9 @@ void RegisterSimCommands(CLI::App& app, CommandContext& ctx) {
       symlink_lock = LockSimPath(o.symlink, "the CNC's symlink", "--symlink", "sim-cnc");
     }
     VirtualCncOptions options;
+    options.firmware = ParseFirmware(o.firmware);
+    if (options.firmware == CncFirmware::kMarlin)
+      options.settings = GrblSettings::PrinterDefaults();
     options.time_scale = o.time_scale;
     options.rx_buffer_bytes = o.rx_buffer;
     options.symlink_path = o.symlink;

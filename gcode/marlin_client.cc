@@ -71,6 +71,18 @@ void MarlinClient::WriteLine(const std::string& line) {
   transport_->Write(line + "\n");
 }
 
+// The boot messages' end, within a second boot_timeout: a line that never goes quiet (noise,
+// a flood of reports) is not waited for forever. What arrives meanwhile is dropped: besides the
+// boot's echoes, it may answer a line written while the board was restarting (the new boot
+// refuses its number and asks for line 1), which must not be taken for an answer to the
+// numbering that starts now.
+void MarlinClient::AwaitBootEnd() {
+  const auto quiet_until = Clock::now() + options_.boot_timeout;
+  while (Clock::now() < quiet_until && ReadLine(options_.boot_quiet)) {
+  }
+  stream_.Restart();
+}
+
 MarlinInfo MarlinClient::Connect() {
   info_ = MarlinInfo{};
   // A board that reboots when the port opens prints "start" once its bootloader has passed; a
@@ -80,12 +92,7 @@ MarlinInfo MarlinClient::Connect() {
     const auto m = ReadLine(std::chrono::milliseconds(50));
     if (m && m->kind == MarlinMessageKind::kStart) info_.rebooted_on_open = true;
   }
-  // The boot messages' end, within a second boot_timeout: a line that never goes quiet (noise,
-  // a flood of reports) is not waited for forever.
-  const auto quiet_until = Clock::now() + options_.boot_timeout;
-  while (Clock::now() < quiet_until && ReadLine(options_.boot_quiet)) {
-  }
-  stream_.Restart();
+  AwaitBootEnd();
   for (const MarlinMessage& m : Execute("M115", options_.reply_timeout).messages) {
     if (m.kind == MarlinMessageKind::kFirmware) {
       info_.firmware = m.text;
@@ -153,6 +160,7 @@ MarlinReply MarlinClient::Execute(std::string_view command, std::chrono::millise
                               "\"): reset it and confirm the position before anything moves");
       case MarlinStreamEvent::Kind::kRebooted:
         stream_.ClearQueue();
+        AwaitBootEnd();
         throw MarlinError(MarlinError::Kind::kRebooted,
                           "the printer rebooted during " + what +
                               ": it may not have run, and the printer no longer knows where it "

@@ -88,6 +88,8 @@ class MarlinClient {
   // Reads for at most `wait`: the next complete reply line, or nothing.
   std::optional<MarlinMessage> ReadLine(std::chrono::milliseconds wait);
   void WriteLine(const std::string& line);
+  // After "start": waits for the boot to go quiet, dropping what arrives, then numbers anew.
+  void AwaitBootEnd();
 
   std::unique_ptr<Transport> transport_;
   MarlinClientOptions options_;

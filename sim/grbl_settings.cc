@@ -40,6 +40,18 @@ GrblSettings GrblSettings::GrblFirmwareDefaults() {
   return s;
 }
 
+GrblSettings GrblSettings::PrinterDefaults() {
+  GrblSettings s;
+  s.junction_deviation_mm = 0.013;  // Marlin's JUNCTION_DEVIATION_MM
+  s.homing_seek_mm_per_min = 3000.0;
+  s.homing_feed_mm_per_min = 600.0;
+  s.steps_per_mm = Eigen::Vector3d(80.0, 80.0, 400.0);
+  s.max_rate_mm_per_min = Eigen::Vector3d(30000.0, 30000.0, 300.0);
+  s.acceleration_mm_per_s2 = Eigen::Vector3d(500.0, 500.0, 100.0);
+  s.max_travel_mm = Eigen::Vector3d(235.0, 235.0, 250.0);
+  return s;
+}
+
 namespace {
 
 void Require(bool ok, const std::string& field, double value, const char* what) {

@@ -106,6 +106,10 @@ struct GrblSettings {
   Eigen::Vector3d max_travel_mm{300.0, 180.0, 45.0};           // $130-$132 (as $$ prints them)
 
   static GrblSettings GrblFirmwareDefaults();
+  // A Marlin printer of the Ender-3 class in these fields (the virtual CNC's Marlin dialect reads
+  // its motion from them): 80/80/400 steps/mm, 500/500/5 mm/s, 500/500/100 mm/s^2, junction
+  // deviation 0.013 mm, travel 235 x 235 x 250 mm, homing at 50 then 10 mm/s.
+  static GrblSettings PrinterDefaults();
 
   // Throws std::invalid_argument naming the field and value for a setting the firmware would
   // reject or that breaks motion (non-positive steps/mm, rate, acceleration or travel, negative

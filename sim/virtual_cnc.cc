@@ -83,6 +83,22 @@ void VirtualCncOptions::Check() const {
   }
   if (history_pieces < 16) fail("history_pieces", std::to_string(history_pieces), "must be >= 16");
   settings.Check();
+  marlin.Check();
+}
+
+void VirtualMarlinOptions::Check() const {
+  auto fail = [](const std::string& field, double value, const char* what) {
+    throw std::invalid_argument("VirtualCncOptions.marlin." + field + " " + what + ", got " +
+                                std::to_string(value));
+  };
+  if (!(keepalive_s >= 0.0 && keepalive_s <= 60.0))
+    fail("keepalive_s", keepalive_s, "must be in 0..60");
+  if (!(temperature_report_s >= 0.0 && temperature_report_s <= 60.0)) {
+    fail("temperature_report_s", temperature_report_s, "must be in 0..60");
+  }
+  if (machine_type.find_first_of("\r\n") != std::string::npos) {
+    throw std::invalid_argument("VirtualCncOptions.marlin.machine_type must be one line");
+  }
 }
 
 VirtualCnc::Impl::Impl(const VirtualCncOptions& options)
@@ -237,7 +253,11 @@ void VirtualCnc::Impl::FirmwareMain() {
       continue;
     }
     InitAfterReset();
-    ProtocolMainLoop(lk);
+    if (Marlin()) {
+      MarlinMainLoop(lk);
+    } else {
+      ProtocolMainLoop(lk);
+    }
   }
 }
 
@@ -254,6 +274,11 @@ void VirtualCnc::Impl::InitAfterReset() {
   gc_.position = Belief();  // gc_sync_position()
   wco_counter_ = ovr_counter_ = 0;
   last_error_ = kGrblOk;
+  if (Marlin()) {
+    MarlinInit();
+    Emit(MarlinBoot());
+    return;
+  }
   Emit(Welcome());
 }
 
@@ -290,6 +315,7 @@ void VirtualCnc::Impl::ProtocolMainLoop(Lock& lk) {
 
 void VirtualCnc::Impl::Wait(Lock& lk, double deadline) {
   if (stop_) return;
+  if (Marlin()) deadline = std::min(deadline, MarlinNextIdleEvent());
   const double next = std::min(exec_.NextEventTime(), deadline);
   if (std::isfinite(next) && !clock_.instant()) {
     cv_.wait_until(lk, clock_.WallAt(next) + std::chrono::microseconds(20));
@@ -335,6 +361,7 @@ void VirtualCnc::Impl::ExecuteRealtime(Lock& lk) {
 }
 
 void VirtualCnc::Impl::RtAlarm(Lock& lk) {
+  if (Marlin()) return MarlinKill(lk);
   state_ = GrblState::kAlarm;
   ++stats_.alarms;
   Emit("ALARM:" + std::to_string(rt_alarm_) + "\r\n");
@@ -354,6 +381,7 @@ void VirtualCnc::Impl::RtSystem(Lock& lk) {
     return;
   }
   UpdateMotion();
+  if (Marlin()) MarlinIdle();
   if (rt_alarm_) RtAlarm(lk);
   if (Aborting()) {
     abort_ = true;
@@ -833,7 +861,7 @@ int RunVirtualCncForeground(const VirtualCncOptions& options) {
     if (!options.symlink_path.empty()) std::cout << options.symlink_path << "\n";
     std::cout.flush();
     std::cerr << "virtual "
-              << (options.firmware == GrblFirmware::kGrblHal ? "grblHAL 1.1f" : "GRBL 1.1h")
+              << (options.firmware == CncFirmware::kGrblHal ? "grblHAL 1.1f" : "GRBL 1.1h")
               << " on " << cnc.PtyPath() << " (time scale " << options.time_scale << ", RX "
               << options.rx_buffer_bytes << " bytes, " << options.planner_blocks
               << " planner blocks); Ctrl-C to stop\n";

@@ -1,8 +1,9 @@
 #pragma once
-// The virtual CNC: a GRBL 1.1h controller served on a pseudo-terminal, for tests, the demo and
-// benchmarks (production code never includes sim/). A host opens PtyPath() exactly as it would
-// open /dev/ttyUSB0 and talks the GRBL 1.1 line protocol; the machine moves along GRBL's planned
-// trapezoidal profiles in (scaled) real time, and TruePosition() tells where the tool really is.
+// The virtual CNC: a GRBL 1.1h controller (or grblHAL, or a Marlin printer) served on a
+// pseudo-terminal, for tests, the demo and benchmarks (production code never includes sim/). A host
+// opens PtyPath() exactly as it would open /dev/ttyUSB0 and talks the GRBL 1.1 line protocol; the
+// machine moves along GRBL's planned trapezoidal profiles in (scaled) real time, and TruePosition()
+// tells where the tool really is.
 //
 // Faithful where a host can tell the difference (gnea/grbl 1.1h protocol.c, serial.c, gcode.c,
 // planner.c, limits.c, report.c):
@@ -61,7 +62,7 @@
 // - SendRaw(): bytes that reach the host as they are, e.g. replies left over from an earlier
 //   session sitting in the pty when a new host opens it.
 //
-// grblHAL dialect (`firmware = GrblFirmware::kGrblHal`), as grblHAL/core (COMPATIBILITY_LEVEL
+// grblHAL dialect (`firmware = CncFirmware::kGrblHal`), as grblHAL/core (COMPATIBILITY_LEVEL
 // 0, its default) behaves in github.com/grblHAL/core: report.c, protocol.c, gcode.c, grbllib.c,
 // alarms.h at 04ce2c5c (2023), system.c at 0488a614 and machine_limits.c at 049f0f13 (2025),
 // errors.h at 02b45f86, messages.c at 28711ee5:
@@ -88,6 +89,44 @@
 // commands, board-specific $I lines ([DRIVER:], [BOARD:], [NVS STORAGE:]), tool change, soft
 // limits on homed axes only (machine_limits.c check_travel_limits(): they apply to all here).
 //
+// Marlin dialect (`firmware = CncFirmware::kMarlin`), a 3D printer as Marlin 2.1 drives one
+// (MarlinFirmware/Marlin src/gcode/queue.cpp, gcode.cpp, feature/e_parser.h, module/motion.cpp),
+// sharing the serial side, the planner, the clock, the ground truth and the faults above:
+// - Boot: `start`, then a few `echo:` lines; no alarm, no homing lock: Idle, believing 0,0,0
+//   wherever the tool stands. A reboot (PowerCycle, reset_on_open, unplug with power loss) is the
+//   only reset: ResetNow() and ResetDuringNextDwell() reboot the board (its reset pin is the
+//   MCU's).
+// - Lines end at '\n' or '\r'; empty lines are skipped without a reply; `;` starts a comment.
+//   A line starting `N<n>` must be the last number + 1 (M110 excepted) and end in `*<checksum>`
+//   (XOR of the bytes before '*'): otherwise `Error:Line Number is not Last Line Number+1, Last
+//   Line: <n>` / `Error:checksum mismatch, Last Line: <n>` / `Error:No Checksum with line number,
+//   Last Line: <n>`, the bytes waiting in the RX buffer are discarded, then `Resend: <n+1>` and
+//   `ok`. A checksum without a number: `Error:No Line Number with checksum, Last Line: <n>`.
+// - `ok` once a command has been processed: a move once it is in the planner (waiting for room),
+//   G4 and M400 once every move has ended (and the dwell elapsed), G28 once homed. Blocking
+//   commands print `echo:busy: processing` every keepalive_s (machine time).
+// - G0/G1 X Y Z E F (F modal, mm/min, shared by G0 and G1, 1500 at boot; clamped by the axes'
+//   $110-$112), G4 P<ms>/S<s>, G21, G28 [X Y Z] (each axis in turn X, Y, Z toward its minimum
+//   endstop, which sits at true 0, at $25 then $24 after a bump back of 2 mm; more than 1.5 x
+//   $13x away: `Error:Homing Failed`, then halted as kill()), G90/G91, M17/M18/M84 and M82/M83
+//   (acknowledged, no effect: the steppers stay on), M105 (`ok T:..`), M110 N, M114 (`X:.. Y:.. Z:.. E:.. Count X:.. Y:..
+//   Z:..`, the planned position, 2 decimals), M114 R (the steppers' position, 3 decimals) with
+//   m114_realtime, M115 (FIRMWARE_NAME, Cap: lines), M154 S<s> with auto_report_position, M155
+//   S<s> (temperature reports `T:.. /.. B:.. /.. @:0 B@:0`), M211 [S0|S1] (`echo:Soft endstops:
+//   On  Min:  X.. Y.. Z..   Max:  X.. Y.. Z..`: 0..$13x), M400, M503 (M92 M203 M201 M204 M205
+//   lines from the settings). Heating (M104 M109 M140 M190) is acknowledged and does nothing.
+//   Anything else: `echo:Unknown command: "<line>"`, then ok.
+// - Soft endstops clamp a move's target into 0..$13x on homed axes, without a message.
+// - Emergency parser: `M112`, `M410`, `M108` act as their bytes arrive, ahead of the queue (the
+//   line itself is then acknowledged as a no-op). M112: the steppers stop dead, `Error:Printer
+//   halted. kill() called!`, and the board ignores everything until it reboots. M410: every
+//   planned move is dropped and the steppers stop dead where they are (position kept).
+// - RaiseAlarmDuringNextMove() halts the printer as kill() does (a thermal runaway, a driver
+//   fault): steppers stopped dead, the kill message, nothing more until a reboot.
+// Not modelled for Marlin: the command ring read ahead while a command runs (lines are taken one
+// at a time from the RX buffer), ADVANCED_OK, G2/G3, G92 and workspace offsets, bed levelling,
+// temperatures that change, M999, host prompts, SD cards, parenthesised comments.
+//
 // Thread-safe: every public method may be called from any thread.
 
 #include <chrono>
@@ -110,9 +149,25 @@ enum class GrblState { kIdle, kRun, kHold, kJog, kAlarm, kDoor, kCheck, kHome, k
 const char* GrblStateName(GrblState state);
 
 // Which firmware the virtual controller speaks.
-enum class GrblFirmware {
+enum class CncFirmware {
   kGrbl11h,  // gnea/grbl 1.1h
   kGrblHal,  // grblHAL core, COMPATIBILITY_LEVEL 0 (see the header comment)
+  kMarlin,   // Marlin 2.1 on a 3D printer (see the header comment)
+};
+
+// The virtual printer's Marlin build (only with firmware = kMarlin).
+struct VirtualMarlinOptions {
+  // HOST_KEEPALIVE_FEATURE: "echo:busy: processing" every this many machine seconds while a
+  // command blocks (G28, G4, M400, a full planner); 0: off.
+  double keepalive_s = 2.0;
+  bool m114_realtime = true;         // M114_REALTIME: `M114 R` reports the steppers' position
+  bool auto_report_position = true;  // AUTO_REPORT_POSITION: M154 (Cap:AUTOREPORT_POS)
+  // Temperature auto-report interval at boot (as after `M155 S<n>`), machine seconds; 0: off.
+  double temperature_report_s = 0.0;
+  bool soft_endstops = true;  // M211 state at boot (travel 0..$13x on each homed axis)
+  std::string machine_type = "Virtual Ender-3";
+
+  void Check() const;  // throws std::invalid_argument naming the field and its value
 };
 
 struct VirtualCncOptions {
@@ -126,7 +181,8 @@ struct VirtualCncOptions {
   int baud_rate = 115200;
   int planner_blocks = 15;
   GrblSettings settings;  // the EEPROM at power-up; also what $RST=$ restores
-  GrblFirmware firmware = GrblFirmware::kGrbl11h;
+  CncFirmware firmware = CncFirmware::kGrbl11h;
+  VirtualMarlinOptions marlin;  // firmware = kMarlin
   // HOMING_INIT_LOCK (a GRBL 1.1h build option, on in the stock build; grblHAL's $22 bit 2):
   // with homing enabled the controller boots into Alarm (grblHAL: ALARM:11 until homed).
   // Without it, it boots Idle and `$I` shows `L` in [OPT:].

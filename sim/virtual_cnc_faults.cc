@@ -39,6 +39,7 @@ void VirtualCnc::Impl::PowerCycle() {
 void VirtualCnc::Impl::ResetNow() {
   std::lock_guard<std::mutex> lk(mu_);
   if (stop_ || !powered_) return;
+  if (Marlin()) return Reboot();  // a printer's reset pin restarts its MCU
   McReset();
 }
 

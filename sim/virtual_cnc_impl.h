@@ -108,6 +108,23 @@ struct LineBuffer {
   void Clear();
 };
 
+// The Marlin dialect's state (virtual_cnc_marlin.cc), reset at every boot.
+struct MarlinState {
+  long last_n = 0;                                     // serial_state.last_N
+  double feed_mm_min = 1500.0;                         // feedrate_mm_s, shared by G0 and G1
+  bool relative = false;                               // G91
+  int homed = 0;                                       // bit per axis homed since boot
+  bool soft_endstops = true;                           // M211
+  bool in_command = false;                             // KEEPALIVE_STATE(IN_HANDLER)
+  double next_busy = 0.0;                              // machine time of the next keep-alive
+  double temperature_s = 0.0, next_temperature = 0.0;  // M155
+  double position_s = 0.0, next_position = 0.0;        // M154
+  std::string ep_line;  // the emergency parser's view of the line arriving
+};
+struct MarlinWords;
+// rt_alarm_ value that halts a Marlin printer (kill()): M112, a fault, a failed homing.
+inline constexpr int kMarlinKill = 255;
+
 }  // namespace virtual_cnc_internal
 
 class VirtualCnc::Impl {
@@ -276,8 +293,31 @@ class VirtualCnc::Impl {
   void InitAfterReset();
   void ProtocolMainLoop(Lock& lk);
 
+  // ----- Marlin (virtual_cnc_marlin.cc) -----
+  using MarlinWords = virtual_cnc_internal::MarlinWords;
+  bool Marlin() const { return options_.firmware == CncFirmware::kMarlin; }
+  std::string MarlinBoot() const;    // "start" and the boot echoes
+  void MarlinInit();                 // after every boot
+  void MarlinEmergencyByte(char c);  // the ISR's emergency parser (mu_ held)
+  void MarlinKill(Lock& lk);         // kill(): the message, then nothing until a reboot
+  double MarlinNextIdleEvent() const;
+  void MarlinIdle();  // keep-alive and auto-reports when due
+  void MarlinMainLoop(Lock& lk);
+  void MarlinLineError(const char* error);
+  bool MarlinFraming(const std::string& line);
+  void MarlinLine(Lock& lk, const std::string& raw);
+  bool MarlinCommand(Lock& lk, const std::string& command);
+  bool MarlinMCode(Lock& lk, const MarlinWords& w, const std::string& command);
+  void MarlinMove(Lock& lk, std::optional<double> x, std::optional<double> y,
+                  std::optional<double> z, std::optional<double> f);
+  void MarlinHome(Lock& lk, bool x, bool y, bool z);
+  bool MarlinHomeAxis(Lock& lk, int axis);
+  std::string MarlinPosition(bool real) const;
+  void MarlinReportFirmware();
+  void MarlinReportSettings();
+
   // ----- dialect (virtual_cnc_dialect.cc) -----
-  bool GrblHal() const { return options_.firmware == GrblFirmware::kGrblHal; }
+  bool GrblHal() const { return options_.firmware == CncFirmware::kGrblHal; }
   const char* Welcome() const;
   // grblHAL limits_homing_required(): homing lock on, homing enabled, not homed.
   bool HomingRequired() const;
@@ -394,6 +434,7 @@ class VirtualCnc::Impl {
   bool homed_ = false;        // $H completed since power-up without losing position since
   int alarm_code_ = 0;        // sys.alarm: the last ALARM:N printed while in Alarm
   int last_error_ = kGrblOk;  // grblHAL gc_state.last_error (the error latch)
+  virtual_cnc_internal::MarlinState marlin_;
 
   VirtualCncStats stats_;
   std::thread firmware_, io_;

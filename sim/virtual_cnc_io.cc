@@ -36,6 +36,16 @@ void VirtualCnc::Impl::OnHostByte(unsigned char c) {
     c = static_cast<unsigned char>(c ^ (1u << (rng_() % 7)));
   }
   if (!powered_) return;
+  if (Marlin()) {  // no real-time bytes: the emergency parser watches the line go by
+    MarlinEmergencyByte(static_cast<char>(c));
+    if (rx_.size() < static_cast<std::size_t>(options_.rx_buffer_bytes)) {
+      rx_.push_back(static_cast<char>(c));
+    } else {
+      ++stats_.rx_overflow_dropped;
+    }
+    cv_.notify_all();
+    return;
+  }
   switch (c) {
     case 0x18:
       McReset();
@@ -66,7 +76,8 @@ void VirtualCnc::Impl::Emit(const std::string& s) {
   // The firmware thread may still be unwinding the run of a previous power-up (e.g. a dwell
   // cut short by PowerCycle()): that code no longer exists on the board, its output is not sent.
   if (boot_id_ != running_boot_) return;
-  if (!lose_replies_.empty() && (s.rfind("ok\r\n", 0) == 0 || s.rfind("error:", 0) == 0)) {
+  if (!lose_replies_.empty() &&
+      (s.rfind("ok\r\n", 0) == 0 || s.rfind("ok\n", 0) == 0 || s.rfind("error:", 0) == 0)) {
     const std::string instead = std::move(lose_replies_.front());  // LoseNextReply()
     lose_replies_.pop_front();
     if (!instead.empty()) Transmit(instead);

@@ -91,7 +91,10 @@ void VirtualCnc::Impl::McDwell(Lock& lk, double seconds) {
   Synchronize(lk);
   if (abort_) return;
   ++stats_.dwells;
-  if (std::exchange(reset_at_dwell_, false)) McReset();
+  if (std::exchange(reset_at_dwell_, false)) {
+    if (Marlin()) return Reboot();  // a printer's reset is its MCU's: the board restarts
+    McReset();
+  }
   // delay_sec(seconds, DELAY_MODE_DWELL): ceil(seconds / 50 ms) steps of 50 ms, real-time
   // commands served between steps (a feed hold suspends the dwell).
   const long steps = static_cast<long>(std::ceil(seconds / kDwellTimeStep - 1e-9));
@@ -167,7 +170,8 @@ bool VirtualCnc::Impl::HomingMove(Lock& lk, const Eigen::Vector3d& target, doubl
   exec_.AddSystemLine(target, rate, abrupt, MachineNow());
   exec_.StartCycle(MachineNow());
   while (true) {
-    UpdateMotion();  // no status reports during homing, only a reset gets through
+    UpdateMotion();              // no status reports during homing, only a reset gets through
+    if (Marlin()) MarlinIdle();  // a printer's keep-alive goes on
     if (Aborting()) return false;
     if (!exec_.Busy()) return true;
     Wait(lk);

@@ -132,7 +132,7 @@ TEST_CASE("without homing: a run asks before its first move and after a controll
 TEST_CASE("grblHAL's homing lock without homing: asked, unlocked only when confirmed and logged",
           "[daemon][safety]") {
   RigFixture f("hal", 30, 0.0, false,
-               [](VirtualRigOptions& o) { o.cnc.firmware = GrblFirmware::kGrblHal; });
+               [](VirtualRigOptions& o) { o.cnc.firmware = CncFirmware::kGrblHal; });
   f.config.machine.home = false;
   RunEngine engine(f.db);
   const auto run_id = engine.CreateRun(f.config);

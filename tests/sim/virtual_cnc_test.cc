@@ -25,7 +25,7 @@
 #include "tests/wait.h"
 
 using gs360::FaultDirection;
-using gs360::GrblFirmware;
+using gs360::CncFirmware;
 using gs360::GrblState;
 using gs360::VirtualCnc;
 using gs360::VirtualCncOptions;
@@ -1056,7 +1056,7 @@ TEST_CASE("grblHAL: welcome - $I - ALARM:11 at power-up - $X refused with error:
           "[virtual_cnc][grblhal]") {
   VirtualCncOptions o;  // homing and soft limits enabled, homing lock on
   o.time_scale = 50;
-  o.firmware = GrblFirmware::kGrblHal;
+  o.firmware = CncFirmware::kGrblHal;
   o.initial_true_position = Eigen::Vector3d(-20, -10, -5);
   VirtualCnc cnc(o);
   Host host(cnc.PtyPath());
@@ -1110,7 +1110,7 @@ TEST_CASE("grblHAL: welcome - $I - ALARM:11 at power-up - $X refused with error:
 TEST_CASE("grblHAL: one reply per CRLF line - an error latches until an empty line or a $ line",
           "[virtual_cnc][grblhal]") {
   VirtualCncOptions o = FastOptions(0);  // homing disabled: Idle at power-up
-  o.firmware = GrblFirmware::kGrblHal;
+  o.firmware = CncFirmware::kGrblHal;
   VirtualCnc cnc(o);
   Host host(cnc.PtyPath());
   CHECK(*host.Line() == kHalWelcome);
@@ -1148,8 +1148,8 @@ TEST_CASE("grblHAL: one reply per CRLF line - an error latches until an empty li
 
 TEST_CASE("homing_init_lock off: Idle at power-up with homing enabled - L in the OPT line",
           "[virtual_cnc][grblhal]") {
-  for (const GrblFirmware firmware : {GrblFirmware::kGrbl11h, GrblFirmware::kGrblHal}) {
-    const bool hal = firmware == GrblFirmware::kGrblHal;
+  for (const CncFirmware firmware : {CncFirmware::kGrbl11h, CncFirmware::kGrblHal}) {
+    const bool hal = firmware == CncFirmware::kGrblHal;
     INFO((hal ? "grblHAL" : "GRBL 1.1h"));
     VirtualCncOptions o;
     o.time_scale = 0;
