@@ -11,6 +11,7 @@
 #include "cli/commands.h"
 #include "cli/progress.h"
 #include "cli/report.h"
+#include "cli/sim_args.h"
 #include "cli/sim_bridge.h"
 #include "daemon/run_engine.h"
 #include "sim/virtual_rig.h"
@@ -25,6 +26,7 @@ struct BenchOptions {
   double time_scale = 1.0;
   std::string db;
   std::uint64_t seed = 1;
+  std::string firmware = "grbl";
 };
 
 double CpuSeconds() {
@@ -66,14 +68,21 @@ void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
       ->capture_default_str();
   acq->add_option("--db", o.db, "Database (default: temp file, removed afterwards)");
   acq->add_option("--seed", o.seed, "Seed")->capture_default_str();
+  acq->add_option("--firmware", o.firmware,
+                  "grbl, grblhal, or marlin (the rig on an Ender-3-class printer's bed)")
+      ->check(CLI::IsMember({"grbl", "grblhal", "marlin"}))
+      ->capture_default_str();
   acq->callback([&ctx] {
     RunConfig config;
+    const CncFirmware firmware = ParseCncFirmware(o.firmware);
+    if (firmware == CncFirmware::kMarlin) ApplyPrinterDefaults(&config);
     config.name = "bench";
     config.rig.shape.shape = ParseSensorShape(o.shape);
     config.plan.probe_count = o.probes;
     config.plan.count_is_kept = o.kept;
     config.plan.seed = o.seed;
-    VirtualSetup setup = MakeVirtualSetup(config, o.time_scale, o.seed);
+    VirtualSetup setup = MakeVirtualSetup(config, o.time_scale, o.seed, {}, "",
+                                          [&](VirtualRigOptions& r) { r.cnc.firmware = firmware; });
     config = setup.config;
     VirtualRig& rig = *setup.rig;
     const bool temp_db = o.db.empty();
@@ -108,8 +117,8 @@ void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
     RunDatabase database(db, ro);
     const CaptureTruth truth = CheckCapturesAgainstTruth(rig, database, run_id);
     const double mb = static_cast<double>(std::filesystem::file_size(db)) / 1e6;
-    std::printf("\nbench acquisition: %s, %lld probes, time scale %s\n", o.shape.c_str(),
-                static_cast<long long>(report.captured),
+    std::printf("\nbench acquisition: %s on %s, %lld probes, time scale %s\n", o.shape.c_str(),
+                o.firmware.c_str(), static_cast<long long>(report.captured),
                 o.time_scale > 0 ? std::to_string(o.time_scale).c_str() : "instant");
     std::printf("  outcome              %s (%s)\n", std::string(ToString(report.outcome)).c_str(),
                 report.message.c_str());

@@ -63,6 +63,11 @@ void WriteDaemonConfig(const std::filesystem::path& path, const VirtualSetup& se
   daemon.server.port = 0;
   daemon.server.token.clear();
   daemon.calibration.checkerboards = "checkerboards";
+  if (sim.config.empty() && setup.config.machine.firmware == MachineFirmware::kMarlin) {
+    // The built-in printer's envelope is its travel (ApplyPrinterDefaults).
+    daemon.limits.envelope_min = setup.config.plan.machine.TravelMin();
+    daemon.limits.envelope_max = setup.config.plan.machine.TravelMax();
+  }
   std::ofstream out(path);
   out << "# gs360d for `gs360 demo`: the virtual rig of this process"
       << (sim.config.empty() ? std::string() : ", described by " + sim.config) << ".\n"

@@ -45,17 +45,8 @@ InstanceLock LockSimPath(const std::string& path, const std::string& what, const
   }
 }
 
-// "grbl", "grblhal", "marlin" -> the virtual controller's firmware.
-CncFirmware ParseFirmware(const std::string& name) {
-  if (name == "grbl") return CncFirmware::kGrbl11h;
-  if (name == "grblhal") return CncFirmware::kGrblHal;
-  if (name == "marlin") return CncFirmware::kMarlin;
-  throw ClientError("--firmware: unknown firmware '" + name + "' (grbl, grblhal or marlin)",
-                    kExitUsage);
-}
-
 struct SimOptions {
-  std::string firmware = "grbl";
+  std::string firmware = "grbl";  // sim-cnc's; sim-rig takes SimArgs'
   double time_scale = 1.0;
   int rx_buffer = 128;
   std::string symlink;
@@ -89,7 +80,7 @@ void RegisterSimCommands(CLI::App& app, CommandContext& ctx) {
       symlink_lock = LockSimPath(o.symlink, "the CNC's symlink", "--symlink", "sim-cnc");
     }
     VirtualCncOptions options;
-    options.firmware = ParseFirmware(o.firmware);
+    options.firmware = ParseCncFirmware(o.firmware);
     if (options.firmware == CncFirmware::kMarlin)
       options.settings = GrblSettings::PrinterDefaults();
     options.time_scale = o.time_scale;
@@ -121,7 +112,8 @@ void RegisterSimCommands(CLI::App& app, CommandContext& ctx) {
     if (!o.socket.empty()) {
       socket_lock = LockSimPath(o.socket, "the frame socket", "--socket", "sim-rig");
     }
-    RigConfig config = LoadSimConfig(*rig, &o.sim, &o.seed).rig;
+    RunConfig run = LoadSimConfig(*rig, &o.sim, &o.seed);
+    RigConfig& config = run.rig;
     if (o.sim.config.empty()) config.shape.shape = ParseSensorShape(o.shape);
     VirtualRigOptions options;
     options.rig = SimRigOptionsFor(config, o.seed);
@@ -129,7 +121,9 @@ void RegisterSimCommands(CLI::App& app, CommandContext& ctx) {
     options.cnc.time_scale = o.time_scale;
     options.frame_socket = o.socket;
     options.cnc.symlink_path = o.symlink;
+    MachineForConfig(run, &options);
     ApplySimArgs(o.sim, &options);
+    PrinterForConfig(run, &options);
     VirtualRig virtual_rig(options);
     const auto faults = StartFaults(o.sim, virtual_rig, o.seed);
     if (faults && o.symlink.empty()) {

@@ -5,6 +5,7 @@
 
 #include "base/format.h"
 #include "base/json_reader.h"
+#include "cli/daemon_client.h"
 #include "daemon/daemon_config.h"
 
 namespace gs360::cli {
@@ -33,7 +34,35 @@ CLI::Range RangeOf(Bounds b) {
 
 }  // namespace
 
+CncFirmware ParseCncFirmware(const std::string& name) {
+  if (name == "grbl") return CncFirmware::kGrbl11h;
+  if (name == "grblhal") return CncFirmware::kGrblHal;
+  if (name == "marlin") return CncFirmware::kMarlin;
+  throw ClientError("--firmware: unknown firmware '" + name + "' (grbl, grblhal or marlin)",
+                    kExitUsage);
+}
+
+void ApplyPrinterDefaults(RunConfig* config) {
+  MachineSettings& m = config->plan.machine;
+  const GrblSettings printer = GrblSettings::PrinterDefaults();
+  m.max_rate_mm_per_min = printer.max_rate_mm_per_min;
+  m.acceleration_mm_per_s2 = printer.acceleration_mm_per_s2;
+  m.max_travel_mm = printer.max_travel_mm;
+  m.travel_min_mm = Eigen::Vector3d::Zero();
+  m.junction_deviation_mm = printer.junction_deviation_mm;
+  m.planner_blocks = 15;
+  config->rig.base_in_machine = Eigen::Vector3d(117.5, 117.5, 0.0);
+  // Z 0 where the ball rests on the bed (the Z endstop set so).
+  config->rig.tool_offset = Eigen::Vector3d(0.0, 0.0, config->rig.ball_radius);
+  config->plan.start_machine = Eigen::Vector3d(117.5, 117.5, 60.0);
+}
+
 void AddSimArgs(CLI::App* cmd, SimArgs* args) {
+  cmd->add_option("--firmware", args->firmware,
+                  "The virtual controller: grbl (GRBL 1.1h), grblhal, or marlin (a Marlin 2.1 "
+                  "printer; without --config the rig sits on an Ender-3-class printer's bed)")
+      ->check(CLI::IsMember({"grbl", "grblhal", "marlin"}))
+      ->capture_default_str();
   cmd->add_option("--config", args->config,
                   "A gs360d.toml whose [rig] (shape or mesh, fins, lens, camera height) and [plan] "
                   "describe the virtual rig, and whose [sim] sets the options below (the command "
@@ -215,7 +244,11 @@ class SimSectionReader {
 }  // namespace
 
 RunConfig LoadSimConfig(const CLI::App& cmd, SimArgs* args, std::uint64_t* seed) {
-  if (args->config.empty()) return RunConfig{};
+  if (args->config.empty()) {
+    RunConfig config;
+    if (ParseCncFirmware(args->firmware) == CncFirmware::kMarlin) ApplyPrinterDefaults(&config);
+    return config;
+  }
   const auto read_sim = [&](JsonReader& r) {
     SimSectionReader s(r, cmd);
     s.Seed(*seed);
@@ -242,6 +275,7 @@ void ApplySimArgs(const SimArgs& args, VirtualRigOptions* options) {
     throw std::invalid_argument("--perturbation must be >= 0, got " +
                                 FormatFixed(args.perturbation, 3));
   }
+  options->cnc.firmware = ParseCncFirmware(args.firmware);
   TruePerturbationOptions& p = options->rig.perturbation;
   const double s = args.perturbation;
   p.translation_mm *= s;

@@ -41,9 +41,24 @@ struct SimArgs {
   // "all"), one every ~fault_every presses.
   std::string faults;
   double fault_every = 50.0;
+  // The virtual controller's firmware: "grbl", "grblhal" or "marlin" (a printer; without
+  // --config the rig is mounted on an Ender-3-class printer: ApplyPrinterDefaults).
+  std::string firmware = "grbl";
 };
 
-// Adds --config, --perturbation, --camera-tilt, --camera-offset, --no-noise, --read-noise,
+// "grbl", "grblhal", "marlin" -> the virtual controller's firmware. Throws ClientError (usage)
+// naming the three for anything else.
+CncFirmware ParseCncFirmware(const std::string& name);
+
+// The built-in rig mounted on a Marlin printer of the Ender-3 class (GrblSettings::
+// PrinterDefaults): [plan.machine] 500/500/5 mm/s, 500/500/100 mm/s^2, travel 0..235 x 0..235 x
+// 0..250 mm; the ball in the hotend's place, machine Z 0 where it rests on the bed (the Z endstop
+// or offset set so), the sensor's base on the bed at X 117.5 Y 117.5, the run starting 60 mm
+// above it.
+void ApplyPrinterDefaults(RunConfig* config);
+
+// Adds --firmware, --config, --perturbation, --camera-tilt, --camera-offset, --no-noise,
+// --read-noise,
 // --shot-gain, --led-drift, --led-heights, --led-radial, --led-intensity, --blue-leds,
 // --blue-ring-radius, --faults, --fault-every to `cmd`.
 void AddSimArgs(CLI::App* cmd, SimArgs* args);

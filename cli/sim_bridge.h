@@ -31,6 +31,13 @@ int WriteSimCheckerboards(const SimRig& rig, const std::filesystem::path& dir, i
                           std::uint64_t seed);
 
 // `tweak`, when set, adjusts the rig's options (a firmware, its settings) before it is built.
+// The virtual controller as `config`'s [plan.machine] describes it (travel, rates, accelerations,
+// junction deviation).
+void MachineForConfig(const RunConfig& config, VirtualRigOptions* options);
+// For a Marlin printer (options->cnc.firmware): a printer's steps/mm and homing feeds, and the
+// tool at plan.start_machine at power-up. Nothing for GRBL.
+void PrinterForConfig(const RunConfig& config, VirtualRigOptions* options);
+
 VirtualSetup MakeVirtualSetup(RunConfig config, double time_scale, std::uint64_t seed,
                               const std::filesystem::path& frame_socket = {},
                               const std::string& symlink = {},
@@ -62,7 +69,8 @@ namespace gs360::cli {
 // timestamp), not with the offset of the clock at check time. Assumes one client read the
 // rig's camera at a time (the daemon), so a capture's frames are consecutive in the log.
 struct CaptureTruthOptions {
-  double tolerance_mm = 0.005;  // > 0
+  // > 0; the machine's step resolution (half a step on each axis) is added.
+  double tolerance_mm = 0.005;
   // System-minus-steady clock offset (s) assumed at check time: it only picks the nearest in
   // time among served windows of identical content (noise-free camera) and sets
   // CaptureTruth::max_clock_skew_s. Default: measured when the check runs. Tests inject one.

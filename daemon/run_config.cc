@@ -88,6 +88,7 @@ nlohmann::json PlanOptionsToJson(const PlanOptions& p) {
                   {"max_travel_mm", vec(p.machine.max_travel_mm)},
                   {"junction_deviation_mm", p.machine.junction_deviation_mm},
                   {"planner_blocks", p.machine.planner_blocks}};
+  if (p.machine.travel_min_mm) j["machine"]["travel_min_mm"] = vec(*p.machine.travel_min_mm);
   return j;
 }
 
@@ -97,6 +98,11 @@ static void ReadMachineSettings(JsonReader& r, MachineSettings& m) {
   r.Get("max_rate_mm_per_min", m.max_rate_mm_per_min, {0.0, 1e6, true, "mm/min"});
   r.Get("acceleration_mm_per_s2", m.acceleration_mm_per_s2, {0.0, 1e7, true, "mm/s^2"});
   r.Get("max_travel_mm", m.max_travel_mm, {0.0, 1e5, true, "mm"});
+  if (r.Raw("travel_min_mm") != nullptr) {
+    Eigen::Vector3d v = Eigen::Vector3d::Zero();
+    r.Get("travel_min_mm", v, {-1e5, 1e5, false, "mm"});
+    m.travel_min_mm = v;
+  }
   r.Get("junction_deviation_mm", m.junction_deviation_mm, {0.0, 10.0, false, "mm"});
   r.Get("planner_blocks", m.planner_blocks, IntRange{1, 1000});
 }
@@ -278,6 +284,7 @@ nlohmann::json RunConfigToJson(const RunConfig& c) {
       {"machine",
        {{"uri", c.machine.uri},
         {"baud", c.machine.baud},
+        {"firmware", std::string(MachineFirmwareName(c.machine.firmware))},
         {"home", c.machine.home},
         {"verify_tolerance_mm", c.machine.verify_tolerance_mm},
         {"status_interval_ms", c.machine.status_interval_ms}}},
@@ -331,6 +338,14 @@ void ReadRunConfig(JsonReader& r, RunConfig& c) {
   r.Object("machine", [&](JsonReader& o) {
     o.Get("uri", c.machine.uri);
     o.Get("baud", c.machine.baud);
+    if (o.Raw("firmware") != nullptr) {
+      std::string name;
+      o.Get("firmware", name);
+      const auto firmware = ParseMachineFirmware(name);
+      if (!firmware)
+        o.Fail("firmware", "expected \"auto\", \"grbl\" or \"marlin\", got \"" + name + "\"");
+      c.machine.firmware = *firmware;
+    }
     o.Get("home", c.machine.home);
     o.Get("verify_tolerance_mm", c.machine.verify_tolerance_mm);
     o.Get("status_interval_ms", c.machine.status_interval_ms);

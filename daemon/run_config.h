@@ -10,6 +10,7 @@
 
 #include "capture/capture_press.h"
 #include "capture/frame_source.h"
+#include "gcode/machine.h"
 #include "plan/plan.h"
 #include "rig/rig_config.h"
 
@@ -18,6 +19,9 @@ namespace gs360 {
 struct MachineConfig {
   std::string uri;  // serial device, pty path, "serial:VID:PID" or "tcp://host:port"
   int baud = 115200;
+  // What the controller speaks (gcode/machine.h): "auto" tells from what it says when the port
+  // opens (a GRBL welcome, Marlin's "start"), or asks it (M115).
+  MachineFirmware firmware = MachineFirmware::kAuto;
   // $H at the start of a run (and after a reset or reconnect). Without homing the operator
   // vouches that MPos is right (verify_position then only checks the controller answers).
   bool home = true;

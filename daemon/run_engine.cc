@@ -19,7 +19,6 @@
 #include "capture/capture_press.h"
 #include "capture/frame_source.h"
 #include "capture/impression.h"
-#include "gcode/grbl_client.h"
 #include "gcode/probe_program.h"
 
 namespace gs360 {
@@ -116,10 +115,10 @@ void RunSession::Publish(const std::string& phase, int plan_index) {
   p.elapsed_s = status.elapsed_s;
   p.phase = phase;
   p.plan_index = plan_index;
-  if (client_) {
-    p.machine_connected = client_->Connected();
-    if (const auto sample = client_->LatestStatus()) {
-      p.machine_state = sample->status.state_text;
+  if (machine_) {
+    p.machine_connected = machine_->Connected();
+    if (const auto sample = machine_->LatestStatus()) {
+      p.machine_state = sample->state_text;
       p.machine_position = sample->machine_position;
     }
   }
@@ -139,30 +138,28 @@ std::optional<std::vector<Eigen::Vector3d>> RunSession::TravelTo(const PlannedPr
   return travel_->Path(position_, planned.approach_machine);
 }
 
-Step RunSession::Classify(const std::vector<GrblHandle>& handles) {
+Step RunSession::Classify(const std::vector<MachineHandle>& handles) {
   // Replies come in order, so once the last line is answered every earlier one is too.
-  for (const GrblHandle& h : handles) {
-    const GrblReply r = h.Wait(std::chrono::milliseconds(0));
-    if (r.alarm_code || client_->Alarmed()) {
-      const int code = r.alarm_code ? *r.alarm_code : client_->LastAlarm().value_or(0);
-      return {StepKind::kAlarm, "ALARM:" + std::to_string(code) + " (" + GrblAlarmText(code) +
-                                    ") after '" + r.line + "'"};
+  for (const MachineHandle& h : handles) {
+    const MachineReply r = h.Wait(std::chrono::milliseconds(0));
+    if (r.alarm || machine_->Alarmed()) {
+      return {StepKind::kAlarm,
+              (r.alarm ? *r.alarm : machine_->AlarmText()) + " after '" + r.line + "'"};
     }
     switch (r.kind) {
-      case GrblReplyKind::kOk:
+      case MachineReplyKind::kOk:
         break;
-      case GrblReplyKind::kError:
-        return {StepKind::kProbeError, "error:" + std::to_string(r.error_code) + " (" +
-                                           GrblErrorText(r.error_code) + ") on '" + r.line + "'"};
-      case GrblReplyKind::kReset:
+      case MachineReplyKind::kError:
+        return {StepKind::kProbeError, r.error + " on '" + r.line + "'"};
+      case MachineReplyKind::kReset:
         return {StepKind::kReset, "controller reset: " + r.Describe()};
-      case GrblReplyKind::kRefused:
-        return {client_->Alarmed() ? StepKind::kAlarm : StepKind::kReset,
+      case MachineReplyKind::kRefused:
+        return {machine_->Alarmed() ? StepKind::kAlarm : StepKind::kReset,
                 "line refused: " + r.Describe()};
-      case GrblReplyKind::kDisconnected:
-      case GrblReplyKind::kClosed:
+      case MachineReplyKind::kDisconnected:
+      case MachineReplyKind::kClosed:
         return {StepKind::kDisconnected, "controller disconnected: " + r.Describe()};
-      case GrblReplyKind::kTimeout:
+      case MachineReplyKind::kTimeout:
         return {StepKind::kStall, "no reply within " +
                                       FormatFixed(config_.engine.sync_timeout_s, 0) + " s to '" +
                                       r.line + "'"};
@@ -185,8 +182,8 @@ std::optional<std::string> RunSession::Unsafe(const std::vector<std::string>& li
   return std::nullopt;
 }
 
-session::LostReplyWatch::LostReplyWatch(GrblClient& client, const std::vector<std::string>& lines)
-    : client_(client), garbled_before_(client.Stats().unknown_lines), sent_at_(Clock::now()) {
+session::LostReplyWatch::LostReplyWatch(Machine& machine, const std::vector<std::string>& lines)
+    : machine_(machine), garbled_before_(machine.UnreadableLines()), sent_at_(Clock::now()) {
   // Idle covers a dwell too (GRBL reports Idle in G4): wait it out, and then some.
   for (const std::string& line : lines) {
     const std::size_t g4 = line.find("G4");
@@ -197,15 +194,16 @@ session::LostReplyWatch::LostReplyWatch(GrblClient& client, const std::vector<st
 
 bool session::LostReplyWatch::Lost() {
   // The poller's latest report, or a fresh one when it is old (or the poller is off).
-  std::optional<GrblStatusSample> status = client_.LatestStatus();
+  if (!machine_.RepliesCanBeLost()) return false;
+  std::optional<MachineStatus> status = machine_.LatestStatus();
   const auto now = Clock::now();
   if (!status || now - status->received_at > std::chrono::milliseconds(300)) {
     if (now < next_query_) return false;
     next_query_ = now + std::chrono::milliseconds(250);
-    status = client_.QueryStatus(std::chrono::milliseconds(500));
+    status = machine_.QueryStatus(std::chrono::milliseconds(500));
   }
   if (!status || status->received_at <= sent_at_) return false;
-  if (status->status.state != GrblMachineState::kIdle) {
+  if (status->state != MachineState::kIdle) {
     idle_since_.reset();
     return false;
   }
@@ -215,25 +213,25 @@ bool session::LostReplyWatch::Lost() {
 }
 
 std::uint64_t session::LostReplyWatch::Garbled() const {
-  return client_.Stats().unknown_lines - garbled_before_;
+  return machine_.UnreadableLines() - garbled_before_;
 }
 
 Step RunSession::SendAndSync(const std::vector<std::string>& lines, Clock::time_point* sync_at) {
   if (auto bad = Unsafe(lines, position_)) return {StepKind::kSafety, *bad};
   Commanded(lines, position_);
-  std::vector<GrblHandle> handles;
+  std::vector<MachineHandle> handles;
   handles.reserve(lines.size());
-  session::LostReplyWatch lost(*client_, lines);  // before sending: replies come at once
-  for (const std::string& line : lines) handles.push_back(client_->Send(line));
+  session::LostReplyWatch lost(*machine_, lines);  // before sending: replies come at once
+  for (const std::string& line : lines) handles.push_back(machine_->Send(line));
   // An alarm on an earlier line leaves the later ones unanswered (GRBL flushes nothing and waits
   // for a reset): stop waiting as soon as the controller is in alarm or gone, not at the timeout.
   const auto deadline = Clock::now() + Ms(config_.engine.sync_timeout_s);
-  GrblReply last;
+  MachineReply last;
   for (;;) {
-    last = client_->WaitForOk(handles.back(), std::chrono::milliseconds(100));
-    if (last.kind != GrblReplyKind::kTimeout) break;
-    if (client_->Alarmed() || !client_->Connected() || Clock::now() >= deadline) break;
-    if (client_->Held()) {
+    last = machine_->WaitForOk(handles.back(), std::chrono::milliseconds(100));
+    if (last.kind != MachineReplyKind::kTimeout) break;
+    if (machine_->Alarmed() || !machine_->Connected() || Clock::now() >= deadline) break;
+    if (machine_->Held()) {
       return {StepKind::kHeld, "the controller went into a feed hold during '" + lines.back() +
                                    "' (a hold button, or noise on the serial line read as '!')"};
     }
@@ -325,7 +323,7 @@ Step RunSession::PressProbe(const PlannedProbe& planned_in, bool take_reference,
 
   // The status report (MPos) is fetched while the frames are being taken.
   auto status = std::async(std::launch::async,
-                           [this] { return client_->QueryStatus(std::chrono::seconds(2)); });
+                           [this] { return machine_->QueryStatus(std::chrono::seconds(2)); });
   const PressCaptureResult capture = CapturePress(*source_, sync, config_.camera.capture);
   const auto sample = status.get();
   SendRetract(program, planned);
@@ -446,18 +444,18 @@ void RunSession::TallyImpression(const PlannedProbe& planned) {
 void RunSession::SendRetract(const ProbeProgram& program, const PlannedProbe& planned) {
   if (Unsafe(program.retract, position_)) return;
   Commanded(program.retract, position_);
-  for (const std::string& line : program.retract) client_->Send(line);
+  for (const std::string& line : program.retract) machine_->Send(line);
   position_ = planned.retract_machine;
   at_retract_of_ = planned.plan_index;
 }
 
 void RunSession::SettleAndRecord() {
-  if (!client_ || !client_->Connected() || client_->Alarmed() || client_->Held() ||
-      !client_->PositionTrusted()) {
+  if (!machine_ || !machine_->Connected() || machine_->Alarmed() || machine_->Held() ||
+      !machine_->PositionTrusted()) {
     return;
   }
   // The motion sent has ended where it was sent: the next session starts from one known point.
-  if (client_->WaitIdle(Ms(config_.engine.sync_timeout_s)) == GrblWaitResult::kIdle &&
+  if (machine_->WaitIdle(Ms(config_.engine.sync_timeout_s)) == MachineWaitResult::kIdle &&
       !last_path_.empty()) {
     last_path_ = {last_path_.back()};
     db_.SetCommandedPath(run_id_, last_path_);

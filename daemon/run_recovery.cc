@@ -12,6 +12,7 @@
 #include "base/format.h"
 #include "capture/impression.h"
 #include "daemon/run_session.h"
+#include "gcode/open_machine.h"
 
 namespace gs360 {
 
@@ -24,36 +25,37 @@ using session::StepKind;
 
 void RunSession::ConnectMachine() {
   Publish("connecting");
-  TransportOptions transport;
-  transport.baud = config_.machine.baud;
-  GrblClientOptions options;
-  options.status_min_interval = std::chrono::milliseconds(config_.machine.status_interval_ms);
-  options.status_poll_interval =
-      std::max(options.status_poll_interval, options.status_min_interval);
-  client_ = GrblClient::ForUri(config_.machine.uri, transport, options);
-  const GrblMachineInfo info = client_->Connect();
-  Event(EventLevel::kInfo, "connected to " + info.firmware + " " + info.version + " at " +
-                               config_.machine.uri + " (RX buffer " +
-                               std::to_string(info.rx_buffer_bytes) + " bytes)");
-  if (info.ended_feed_hold) {
-    Event(EventLevel::kInfo,
-          "the controller stood in a feed hold: a soft reset ended it (a completed hold keeps the "
-          "position; the held lines are dropped)");
+  OpenMachineOptions options;
+  options.transport.baud = config_.machine.baud;
+  options.grbl.status_min_interval = std::chrono::milliseconds(config_.machine.status_interval_ms);
+  options.grbl.status_poll_interval =
+      std::max(options.grbl.status_poll_interval, options.grbl.status_min_interval);
+  MachineFirmware firmware = config_.machine.firmware;
+  machine_ = OpenMachine(config_.machine.firmware, config_.machine.uri, options, &firmware);
+  if (config_.machine.firmware == MachineFirmware::kAuto) {
+    Event(EventLevel::kInfo, std::string("the controller at ") + config_.machine.uri + " speaks " +
+                                 (firmware == MachineFirmware::kMarlin ? "Marlin" : "GRBL") +
+                                 " (set [machine] firmware = \"" +
+                                 std::string(MachineFirmwareName(firmware)) + "\" to skip asking)");
   }
+  const MachineInfo info = machine_->Connect();
+  Event(EventLevel::kInfo, "connected to " + info.description + " at " + config_.machine.uri);
+  for (const std::string& note : info.notes) Event(EventLevel::kInfo, note);
   CompareFirmware(info);
 }
 
-void RunSession::CompareFirmware(const GrblMachineInfo& info) {
-  const MachineSettings actual = MachineSettings::FromGrblSettings(info.settings);
+void RunSession::CompareFirmware(const MachineInfo& info) {
+  const MachineSettings& actual = info.settings;
   const MachineSettings& planned = config_.plan.machine;
   // Travel: every planned position must lie inside the controller's soft limits.
-  if (info.settings.count(130) && info.settings.count(131) && info.settings.count(132)) {
+  if (info.travel_known) {
     try {
       CheckTravel(plan_, actual, 0.0);
     } catch (const std::exception& e) {
       throw std::runtime_error(
-          "the controller's travel ($130-$132 = " + FormatFixed(actual.max_travel_mm.x(), 1) +
-          ", " + FormatFixed(actual.max_travel_mm.y(), 1) + ", " +
+          "the controller's travel (" + info.travel_source + " = " +
+          FormatFixed(actual.max_travel_mm.x(), 1) + ", " +
+          FormatFixed(actual.max_travel_mm.y(), 1) + ", " +
           FormatFixed(actual.max_travel_mm.z(), 1) + " mm) does not reach the plan: " + e.what() +
           ". Fix the controller's $13x or [plan.machine] max_travel_mm and the rig's "
           "mount in gs360d.toml.");
@@ -64,22 +66,70 @@ void RunSession::CompareFirmware(const GrblMachineInfo& info) {
   const auto differs = [](const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
     return (a - b).cwiseAbs().maxCoeff() > 1e-6;
   };
-  if (differs(actual.max_rate_mm_per_min, planned.max_rate_mm_per_min) ||
-      differs(actual.acceleration_mm_per_s2, planned.acceleration_mm_per_s2)) {
+  if (info.rates_known &&
+      (differs(actual.max_rate_mm_per_min, planned.max_rate_mm_per_min) ||
+       differs(actual.acceleration_mm_per_s2, planned.acceleration_mm_per_s2))) {
     Event(EventLevel::kWarning,
-          "the controller's rates ($110-$112 = " + Fmt3(actual.max_rate_mm_per_min) +
-              " mm/min) or accelerations ($120-$122 = " + Fmt3(actual.acceleration_mm_per_s2) +
+          "the controller's rates and accelerations (" + info.rates_source + " = " +
+              Fmt3(actual.max_rate_mm_per_min) + " mm/min, " + Fmt3(actual.acceleration_mm_per_s2) +
               " mm/s^2) differ from [plan.machine] (" + Fmt3(planned.max_rate_mm_per_min) + ", " +
               Fmt3(planned.acceleration_mm_per_s2) + "): the ETA will be off");
   }
 }
 
-void RunSession::Home() {
+std::optional<double> RunSession::HomingLift(const std::vector<Eigen::Vector3d>& where) const {
+  if (machine_->HomesZFirst()) return 0.0;
+  if (where.empty()) return std::nullopt;
+  double lo = where.front().z(), hi = lo;
+  for (const Eigen::Vector3d& p : where) {
+    lo = std::min(lo, p.z());
+    hi = std::max(hi, p.z());
+  }
+  const double lift = std::max(0.0, travel_->OverZMachine() + config_.plan.travel_clearance - lo);
+  if (hi + lift > config_.plan.machine.TravelMax().z() + 1e-9) return std::nullopt;
+  // Straight up from each point must stay clear of the sensor (the mount's plane is no gel).
+  const double gap = 0.5 * config_.plan.travel_clearance;
+  for (const Eigen::Vector3d& p : where) {
+    for (double dz = 0.0; dz <= lift + 1e-9; dz += 0.25) {
+      const Eigen::Vector3d q = travel_->BallFromMachine(p + Eigen::Vector3d(0.0, 0.0, dz));
+      if (travel_->SensorGap(q) < gap) return std::nullopt;
+    }
+  }
+  return lift;
+}
+
+std::optional<Ask> RunSession::HomeFrom(const std::vector<Eigen::Vector3d>& where,
+                                        const std::string& why) {
+  const std::optional<double> lift = HomingLift(where);
+  if (!lift && overrides_.confirm != "position") {
+    return Ask{"position",
+               why + (why.empty() ? "" : "; and ") +
+                   "this machine's homing (G28) moves X and Y first, at the tool's height: " +
+                   (where.empty()
+                        ? std::string("with no motion on record")
+                        : "from where the tool may be (last sent to " + Fmt3(where.back()) + ")") +
+                   " it cannot be raised above the sensor for certain. Nothing was moved. Raise "
+                   "the tool above the sensor by hand, then " +
+                   ResumeConfirming() + " (it homes)."};
+  }
+  if (!lift) {
+    Event(EventLevel::kWarning,
+          "confirmed by the user: the tool is above the sensor; homing (G28) without raising it");
+  }
+  Home(lift.value_or(0.0));
+  return std::nullopt;
+}
+
+void RunSession::Home(double lift_mm) {
   Publish("homing");
   // Killed while it homes, the next session finds the tool off every point of the last path.
   db_.MarkHomingSent(run_id_);
   homing_sent_ = true;
-  const GrblReply reply = client_->Home();
+  if (lift_mm > 0.0) {
+    Event(EventLevel::kInfo, "raising Z " + FormatFixed(lift_mm, 1) +
+                                 " mm before homing: its homing moves X and Y first");
+  }
+  const MachineReply reply = machine_->Home(lift_mm);
   if (!reply.Ok()) {
     throw std::runtime_error("homing failed at " + config_.machine.uri + ": " + reply.Describe());
   }
@@ -90,21 +140,21 @@ std::optional<Ask> RunSession::EstablishPosition(const std::vector<Eigen::Vector
   Publish("verifying");
   // Lines sent while it restarted may run after its welcome, a homing cycle may still be on its
   // way: let them finish before looking.
-  if (!client_->Alarmed()) {
-    client_->WaitIdle(
-        homing_sent ? std::max(Ms(config_.engine.sync_timeout_s), client_->Options().homing_timeout)
-                    : Ms(config_.engine.sync_timeout_s));
+  if (!machine_->Alarmed()) {
+    machine_->WaitIdle(homing_sent
+                           ? std::max(Ms(config_.engine.sync_timeout_s), machine_->HomingTimeout())
+                           : Ms(config_.engine.sync_timeout_s));
   }
-  const std::uint64_t stray = client_->StrayRepliesSinceWelcome();
-  const std::optional<Ask> ask = client_->Alarmed() || stray > 0
+  const std::uint64_t stray = machine_->StrayRepliesSinceWelcome();
+  const std::optional<Ask> ask = machine_->PositionLost() || stray > 0
                                      ? RecoverLostPosition(sent, stray)
                                      : VerifyPosition(sent, homing_sent);
   if (ask) return ask;
   for (const std::string& line : ProgramPreamble()) {
-    const GrblReply r = client_->WaitForOk(client_->Send(line), std::chrono::seconds(10));
+    const MachineReply r = machine_->WaitForOk(machine_->Send(line), std::chrono::seconds(10));
     if (!r.Ok()) throw std::runtime_error("preamble '" + line + "' failed: " + r.Describe());
   }
-  const auto status = client_->QueryStatus(std::chrono::seconds(5));
+  const auto status = machine_->QueryStatus(std::chrono::seconds(5));
   if (!status || !status->machine_position) {
     throw std::runtime_error("the controller at " + config_.machine.uri +
                              " reports no machine position");
@@ -123,13 +173,11 @@ std::optional<Ask> RunSession::RecoverLostPosition(const std::vector<Eigen::Vect
                                                    std::uint64_t stray) {
   const bool confirmed = overrides_.confirm == "position";
   const std::string resume = ResumeConfirming();
-  const auto alarm = client_->LastAlarm();
   const std::string why =
-      client_->Alarmed()
-          ? "the controller is in alarm (" +
-                (alarm ? "ALARM:" + std::to_string(*alarm) + ", " + GrblAlarmText(*alarm)
-                       : std::string("it restarted")) +
-                "): its position is lost"
+      machine_->Alarmed()
+          ? "the controller is in alarm (" + machine_->AlarmText() + "): its position is lost"
+      : machine_->PositionLost()
+          ? machine_->AlarmText()
           : "the controller restarted and then executed " + std::to_string(stray) +
                 " line(s) sent while it did: where it stands cannot be checked against the "
                 "motion sent";
@@ -149,9 +197,10 @@ std::optional<Ask> RunSession::RecoverLostPosition(const std::vector<Eigen::Vect
       Event(EventLevel::kWarning,
             "confirmed by the user: the tool was moved clear of the sensor (" + why +
                 "; it was last sent to " + Fmt3(sent.back()) + ", in or near the gel); homing");
+      Home(0.0);  // the user moved it: where it was sent says nothing now
+      return std::nullopt;
     }
-    Home();
-    return std::nullopt;
+    return HomeFrom(sent, why);
   }
   if (!confirmed) {
     return Ask{"position", why +
@@ -160,9 +209,9 @@ std::optional<Ask> RunSession::RecoverLostPosition(const std::vector<Eigen::Vect
                                "(or move the tool to where MPos says it is), then " +
                                resume + "."};
   }
-  if (client_->Alarmed()) Unlock();
-  client_->MarkPositionTrusted();
-  const auto status = client_->QueryStatus(std::chrono::seconds(5));
+  if (machine_->Alarmed()) Unlock();
+  machine_->MarkPositionTrusted();
+  const auto status = machine_->QueryStatus(std::chrono::seconds(5));
   if (!status || !status->machine_position) {
     throw std::runtime_error("the controller at " + config_.machine.uri +
                              " reports no machine position");
@@ -180,7 +229,7 @@ std::optional<Ask> RunSession::VerifyPosition(const std::vector<Eigen::Vector3d>
                                               bool homing_sent) {
   const bool confirmed = overrides_.confirm == "position";
   const std::string resume = ResumeConfirming();
-  const auto status = client_->QueryStatus(std::chrono::seconds(5));
+  const auto status = machine_->QueryStatus(std::chrono::seconds(5));
   if (!status || !status->machine_position) {
     throw std::runtime_error("the controller at " + config_.machine.uri +
                              " reports no machine position");
@@ -192,7 +241,7 @@ std::optional<Ask> RunSession::VerifyPosition(const std::vector<Eigen::Vector3d>
   for (const Eigen::Vector3d& p : sent) nearest = std::min(nearest, (reported - p).norm());
   // Idle and not in alarm after a $H: it either never read the $H (and stands on the path) or
   // finished the cycle, which set its position; an interrupted cycle ends in alarm.
-  const bool homed = homing_sent && status->status.state == GrblMachineState::kIdle;
+  const bool homed = homing_sent && status->state == MachineState::kIdle;
   const bool off_path = !sent.empty() && nearest > config_.machine.verify_tolerance_mm;
   if (!confirmed && off_path && !homed) {
     return Ask{"position",
@@ -228,17 +277,17 @@ std::optional<Ask> RunSession::VerifyPosition(const std::vector<Eigen::Vector3d>
           "position verified: the controller stands where the last motion sent took it, " +
               Fmt3(reported));
   }
-  client_->MarkPositionTrusted();
+  machine_->MarkPositionTrusted();
   position_ = reported;
   BackOutOfGel();
-  if (config_.machine.home) Home();
+  if (config_.machine.home) return HomeFrom({position_}, "");
   return std::nullopt;
 }
 
 void RunSession::Unlock() {
   Event(EventLevel::kWarning,
         "unlocking the controller ($X): its position was confirmed by the user");
-  const GrblReply unlock = client_->Unlock();
+  const MachineReply unlock = machine_->Unlock();
   if (unlock.Ok()) return;
   // grblHAL refuses $X while its homing lock holds (error:46): only homing clears it.
   throw std::runtime_error("unlock ($X) failed: " + unlock.Describe() +
@@ -264,7 +313,9 @@ bool RunSession::PathClearOfGel(const std::vector<Eigen::Vector3d>& path) const 
 
 void RunSession::BackOutOfGel() {
   const Eigen::Vector3d ball = travel_->BallFromMachine(position_);
-  if (travel_->ToolGaps(ball).Min() >= 0.5 * config_.plan.travel_clearance) return;
+  // The sensor's own surface: a ball resting on a printer's bed is near the mount's plane, not
+  // in the gel (travel lifts it off: TravelPlanner::Path).
+  if (travel_->SensorGap(ball) >= 0.5 * config_.plan.travel_clearance) return;
   // The probe whose press axis runs through the ball: straight out along it to its approach.
   Eigen::Vector3d target;
   std::string along;
@@ -294,9 +345,10 @@ void RunSession::BackOutOfGel() {
   }
   Publish("backing out");
   Commanded({line}, position_);
-  const GrblReply r = client_->WaitForOk(client_->Send(line), Ms(config_.engine.sync_timeout_s));
+  const MachineReply r =
+      machine_->WaitForOk(machine_->Send(line), Ms(config_.engine.sync_timeout_s));
   if (!r.Ok()) throw std::runtime_error("backing out of the gel failed: " + r.Describe());
-  client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
+  machine_->WaitIdle(Ms(config_.engine.sync_timeout_s));
   Event(EventLevel::kInfo, "the tool was in or near the gel at " + Fmt3(position_) +
                                ": backed out along " + along + " to " + Fmt3(target));
   position_ = target;
@@ -320,15 +372,16 @@ void RunSession::Commanded(const std::vector<std::string>& lines, const Eigen::V
 void RunSession::ReturnToSafety(const PlannedProbe& planned) {
   // After a failed line the tool may be anywhere on this probe's way in; its approach point is
   // straight out along the normal, so going there first is always clear.
-  client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
-  const auto status = client_->QueryStatus(std::chrono::seconds(2));
+  machine_->WaitIdle(Ms(config_.engine.sync_timeout_s));
+  const auto status = machine_->QueryStatus(std::chrono::seconds(2));
   if (status && status->machine_position) position_ = *status->machine_position;
   const TravelPlanner::Gaps gaps = travel_->ToolGaps(travel_->BallFromMachine(position_));
   if (gaps.Min() < config_.plan.travel_clearance * 0.5) {
     const std::string line = MachineMoveLine(planned.approach_machine);
     if (Unsafe({line}, position_)) return;
     Commanded({line}, position_);
-    const GrblReply r = client_->WaitForOk(client_->Send(line), Ms(config_.engine.sync_timeout_s));
+    const MachineReply r =
+        machine_->WaitForOk(machine_->Send(line), Ms(config_.engine.sync_timeout_s));
     if (r.Ok()) position_ = planned.approach_machine;
   }
   at_retract_of_ = -2;
@@ -339,9 +392,9 @@ bool RunSession::Recover(const Step& step) {
   ++report_.recoveries;
   Event(EventLevel::kWarning, step.message + "; recovering (" + std::to_string(recoveries_) + "/" +
                                   std::to_string(config_.engine.max_recoveries) + ")");
-  if (step.kind == StepKind::kDisconnected || !client_->Connected()) {
+  if (step.kind == StepKind::kDisconnected || !machine_->Connected()) {
     Publish("reconnecting");
-    if (!client_->Reconnect(Ms(config_.engine.reconnect_timeout_s))) {
+    if (!machine_->Reconnect(Ms(config_.engine.reconnect_timeout_s))) {
       Event(EventLevel::kError, "the controller at " + config_.machine.uri +
                                     " did not come back within " +
                                     FormatFixed(config_.engine.reconnect_timeout_s, 0) + " s");
@@ -349,7 +402,7 @@ bool RunSession::Recover(const Step& step) {
     }
   } else if (step.kind == StepKind::kStall) {
     // A controller that stopped answering: a soft reset voids whatever it still holds.
-    if (!client_->SoftReset()) return false;
+    if (!machine_->SoftReset()) return false;
   }
   try {
     // The controller may have reset: where the tool is must be known before anything moves.
@@ -476,9 +529,9 @@ void RunSession::Park() {
     return;
   }
   Commanded(lines, position_);
-  for (const auto& line : lines) client_->Send(line);
+  for (const auto& line : lines) machine_->Send(line);
   position_ = plan_.start_machine;
-  client_->WaitIdle(Ms(config_.engine.sync_timeout_s));
+  machine_->WaitIdle(Ms(config_.engine.sync_timeout_s));
 }
 
 }  // namespace gs360

@@ -19,7 +19,7 @@
 #include "capture/impression_regions.h"
 #include "capture/press_check.h"
 #include "daemon/run_engine.h"
-#include "gcode/grbl_client.h"
+#include "gcode/machine.h"
 #include "gcode/probe_program.h"
 #include "geometry/fisheye.h"
 #include "storage/capture_committer.h"
@@ -65,22 +65,23 @@ enum class StepKind {
 inline constexpr double kLostReplyQuietS = 0.75;
 inline constexpr double kLostLineQuietS = 2.0;
 
-// While waiting for a reply. GRBL's lines and replies carry no checksum: noise can turn an `ok`
-// into an unreadable line, or eat a line's newline so the controller never sees its end, and the
-// wait would last the whole sync timeout (minutes). GRBL answers a line as soon as it is planned
-// (a dwell after it has run), so a controller that stands idle longer than the dwells sent take
-// with a line unanswered has lost it or its reply: the caller recovers (soft reset, position
-// check) at once.
+// While waiting for a reply, on a machine whose replies can be lost (Machine::RepliesCanBeLost;
+// Marlin's numbered, checksummed lines are resent by its client instead). GRBL's lines and replies
+// carry no checksum: noise can turn an `ok` into an unreadable line, or eat a line's newline so the
+// controller never sees its end, and the wait would last the whole sync timeout (minutes). GRBL
+// answers a line as soon as it is planned (a dwell after it has run), so a controller that stands
+// idle longer than the dwells sent take with a line unanswered has lost it or its reply: the caller
+// recovers (soft reset, position check) at once.
 class LostReplyWatch {
  public:
-  LostReplyWatch(GrblClient& client, const std::vector<std::string>& lines);
+  LostReplyWatch(Machine& machine, const std::vector<std::string>& lines);
   // Uses the status poller's reports; asks for one (at most every 250 ms) when they are old.
   bool Lost();
   // Unreadable lines since the lines were sent.
   std::uint64_t Garbled() const;
 
  private:
-  GrblClient& client_;
+  Machine& machine_;
   std::uint64_t garbled_before_;
   std::chrono::steady_clock::time_point sent_at_;
   double dwell_s_ = 0.0;
@@ -149,7 +150,7 @@ class RunSession {
   void ConnectMachine();
   // The controller's travel, rates and accelerations against the plan's machine; throws when its
   // travel does not reach every planned position.
-  void CompareFirmware(const GrblMachineInfo& info);
+  void CompareFirmware(const MachineInfo& info);
   // Knows where the tool is before anything moves (run_engine.h "Position"); `sent`: the last
   // motion sent (start, then targets; empty if none): an idle controller must stand on one of
   // its points, or, with `homing_sent` (a $H sent after it), wherever the homing cycle left it.
@@ -163,8 +164,17 @@ class RunSession {
                                          std::uint64_t stray);
   std::optional<Ask> VerifyPosition(const std::vector<Eigen::Vector3d>& sent, bool homing_sent);
   std::string ResumeConfirming() const;  // the command that resumes confirming the position
-  // $H, recorded as sent (RunDatabase::MarkHomingSent) before it goes out; throws when it fails.
-  void Home();
+  // $H / G28, recorded as sent (RunDatabase::MarkHomingSent) before it goes out, after raising Z
+  // `lift_mm` on a machine whose homing moves X and Y first; throws when it fails.
+  void Home(double lift_mm);
+  // How far to raise Z so that a homing which moves X and Y first (Marlin's G28) starts above
+  // the sensor, the tool anywhere on `where` (machine frame): 0 for GRBL ($H seeks Z first);
+  // nullopt when that is not known to be clear within the travel (nothing on record, an overhang,
+  // the travel's top).
+  std::optional<double> HomingLift(const std::vector<Eigen::Vector3d>& where) const;
+  // Homes from `where` (HomingLift), or asks (`why` first) when it cannot be raised for certain
+  // and the user has not confirmed the position.
+  std::optional<Ask> HomeFrom(const std::vector<Eigen::Vector3d>& where, const std::string& why);
   // $X after the user confirmed the position, said in the run's events; throws when refused.
   void Unlock();
   // In or near the gel: out along the probe's own axis (its approach point), or the surface
@@ -193,7 +203,7 @@ class RunSession {
   std::string CaptureFailure(const std::string& what, const PressCaptureResult& r);
   void NoteOutliers(const std::string& what, int plan_index, const PressCaptureResult& r);
   Step SendAndSync(const std::vector<std::string>& lines, Clock::time_point* sync_at);
-  Step Classify(const std::vector<GrblHandle>& handles);
+  Step Classify(const std::vector<MachineHandle>& handles);
   std::optional<std::vector<Eigen::Vector3d>> TravelTo(const PlannedProbe& planned);
   bool Recover(const Step& step);
   void ReturnToSafety(const PlannedProbe& planned);
@@ -257,7 +267,7 @@ class RunSession {
   std::optional<PressCheckResult> last_check_;  // of the last press, for the region tally
   ImpressionRegionTally impression_regions_;    // this session's probe-loop presses
   std::unique_ptr<FisheyeCamera> camera_;       // the nominal camera, for where a press should show
-  std::unique_ptr<GrblClient> client_;
+  std::unique_ptr<Machine> machine_;
   std::unique_ptr<FrameSource> source_;
   ReferenceSchedule references_;
   Eigen::Vector3d position_ = Eigen::Vector3d::Zero();  // where the streamed lines leave the tool

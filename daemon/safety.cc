@@ -7,7 +7,6 @@
 
 #include "base/format.h"
 #include "base/json_reader.h"
-#include "gcode/grbl_client.h"
 #include "gcode/probe_program.h"
 
 namespace gs360 {

@@ -76,6 +76,9 @@ void MachineSettings::Check() const {
   RequireAxesPositive("max_rate_mm_per_min", max_rate_mm_per_min);
   RequireAxesPositive("acceleration_mm_per_s2", acceleration_mm_per_s2);
   RequireAxesPositive("max_travel_mm", max_travel_mm);
+  if (travel_min_mm && !travel_min_mm->allFinite()) {
+    throw std::invalid_argument("MachineSettings.travel_min_mm must be finite");
+  }
   if (!(junction_deviation_mm >= 0.0) || !std::isfinite(junction_deviation_mm)) {
     throw std::invalid_argument(
         "MachineSettings.junction_deviation_mm must be finite and >= 0, got " +

@@ -25,6 +25,7 @@
 
 #include <Eigen/Core>
 #include <map>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -41,11 +42,18 @@ struct MachineSettings {
   // $130-$132, positive. After homing with GRBL's default directions ($23 = 0) the machine
   // position of axis i stays within [-max_travel_mm[i], 0] (soft limits, $20).
   Eigen::Vector3d max_travel_mm{300.0, 180.0, 45.0};
+  // Where the travel starts on each axis when it is not GRBL's [-max_travel_mm, 0]: a printer's
+  // [0, max] (Marlin's X_MIN_POS.., M211), or any other box (mm, machine frame).
+  std::optional<Eigen::Vector3d> travel_min_mm;
+  // The travel box: [TravelMin(), TravelMax()] per axis.
+  Eigen::Vector3d TravelMin() const { return travel_min_mm.value_or(-max_travel_mm); }
+  Eigen::Vector3d TravelMax() const { return TravelMin() + max_travel_mm; }
   double junction_deviation_mm = 0.010;  // $11
   int planner_blocks = 15;  // look-ahead (GRBL: BLOCK_BUFFER_SIZE - 1; $I [OPT:..,15,..])
 
   // Throws std::invalid_argument naming the field and its value: rates, accelerations and
-  // travels must be finite and > 0, the junction deviation finite and >= 0, planner_blocks >= 1.
+  // travels must be finite and > 0, travel_min_mm finite, the junction deviation finite and
+  // >= 0, planner_blocks >= 1.
   void Check() const;
 
   // From `$$` values (GrblMachineInfo::settings): $110-$112, $120-$122, $130-$132, $11; settings

@@ -90,8 +90,8 @@ std::string TravelNumbers(const PlanReach& reach) {
   static const char* const kAxis[3] = {"x", "y", "z"};
   std::string out;
   for (int a = 0; a < 3; ++a) {
-    const double top = -reach.travel_margin;
-    const double bottom = -reach.max_travel_mm[a] + reach.travel_margin;
+    const double top = reach.travel_min[a] + reach.max_travel_mm[a] - reach.travel_margin;
+    const double bottom = reach.travel_min[a] + reach.travel_margin;
     const double over = reach.machine_max[a] - top;
     const double under = bottom - reach.machine_min[a];
     if (over <= 1e-3 && under <= 1e-3) continue;
@@ -103,7 +103,9 @@ std::string TravelNumbers(const PlanReach& reach) {
     auto travel_to = [&](double extra) {
       const double travel = reach.max_travel_mm[a] + extra;
       return "[plan.machine] max_travel_mm " + axis + " to " + Fixed1(travel) + " (" +
-             Fixed1(extra) + " mm more; [limits] envelope_min " + axis + " to " + Fixed1(-travel) +
+             Fixed1(extra) + " mm more; [limits] envelope_" +
+             (reach.travel_min_set ? "max " + axis + " to " + Fixed1(reach.travel_min[a] + travel)
+                                   : "min " + axis + " to " + Fixed1(-travel)) +
              ")";
     };
     std::string s = "; along " + axis + " the probe's positions reach ";
@@ -129,9 +131,14 @@ std::string TravelNumbers(const PlanReach& reach) {
   return out;
 }
 
+// The highest machine z the tool may reach.
+double TravelTopZ(const PlanReach& reach) {
+  return reach.travel_min.z() + reach.max_travel_mm.z() - reach.travel_margin;
+}
+
 bool CannotPassOver(const PlanReach* reach) {
   return reach != nullptr && reach->travel_known &&
-         reach->over_z_machine > -reach->travel_margin + 1e-3;
+         reach->over_z_machine > TravelTopZ(*reach) + 1e-3;
 }
 
 std::string DropAdvice(DropReason reason, const PlanReach* reach) {
@@ -203,7 +210,7 @@ std::vector<std::string> PlanAdvice(const DropCounts& dropped, int kept, int can
   if (CannotPassOver(reach)) {
     advice.push_back("The tool cannot pass over the sensor: that takes machine z = " +
                      Fixed1(reach->over_z_machine) + ", above the top of the travel (" +
-                     Fixed1(-reach->travel_margin) + ")" + TravelNumbers(*reach) + ".");
+                     Fixed1(TravelTopZ(*reach)) + ")" + TravelNumbers(*reach) + ".");
   }
   if (candidates <= 0 || 2 * kept >= candidates) return advice;
   std::vector<DropReason> reasons;
@@ -401,6 +408,10 @@ Eigen::Vector3d TravelPlanner::BallFromMachine(const Eigen::Vector3d& machine) c
   return sensor_from_machine_ * (machine + tool_offset_);
 }
 
+double TravelPlanner::SensorGap(const Eigen::Vector3d& ball) const {
+  return std::min(distance_.Signed(ball) - options_.ball_radius, ToolGaps(ball).stylus);
+}
+
 double TravelPlanner::ObstacleDistance(const Eigen::Vector3d& s) const {
   double d = distance_.Signed(s);
   if (options_.base_is_obstacle) d = std::min(d, s.z());
@@ -474,8 +485,8 @@ bool TravelPlanner::SegmentClearRec(const Eigen::Vector3d& a, const Eigen::Vecto
 bool TravelPlanner::InTravel(const Eigen::Vector3d& machine) const {
   for (int a = 0; a < 3; ++a) {
     const double v = Round3(machine[a]);
-    if (v > -options_.travel_limit_margin + 1e-9 ||
-        v < -options_.machine.max_travel_mm[a] + options_.travel_limit_margin - 1e-9) {
+    if (v > options_.machine.TravelMax()[a] - options_.travel_limit_margin + 1e-9 ||
+        v < options_.machine.TravelMin()[a] + options_.travel_limit_margin - 1e-9) {
       return false;
     }
   }
@@ -627,11 +638,39 @@ std::optional<TravelPlanner::Route> TravelPlanner::BestRoute(const Node& a, cons
 
 std::optional<std::vector<Eigen::Vector3d>> TravelPlanner::Path(
     const Eigen::Vector3d& from_machine, const Eigen::Vector3d& to_machine) const {
-  const Node a = MakeNode(from_machine, true);
+  constexpr double kLiftExtra = 0.1;  // mm above the clearance, against rounding
+  std::vector<Eigen::Vector3d> lead;
+  Eigen::Vector3d from = from_machine;
+  // A ball the base plane holds too close, away from the sensor (a printer's, on its bed after
+  // homing): straight up first, to travel_clearance above the plane.
+  if (vertical_axis_ && options_.base_is_obstacle) {
+    const Eigen::Vector3d s = BallFromMachine(from);
+    const double base_gap = s.z() - options_.ball_radius;
+    const double surface_gap = distance_.Signed(s) - options_.ball_radius;
+    if (base_gap < options_.travel_clearance && surface_gap >= 4.0 * options_.travel_clearance) {
+      from.z() += options_.travel_clearance - base_gap + kLiftExtra;
+      lead.push_back(from);
+    }
+  }
+  if (!InTravel(from)) {
+    const Eigen::Vector3d lo = options_.machine.TravelMin().array() + options_.travel_limit_margin;
+    const Eigen::Vector3d hi = options_.machine.TravelMax().array() - options_.travel_limit_margin;
+    const Eigen::Vector3d inside = from.cwiseMax(lo).cwiseMin(hi);
+    const bool in_hard_travel =
+        (from.array() >= options_.machine.TravelMin().array() - 1e-9).all() &&
+        (from.array() <= options_.machine.TravelMax().array() + 1e-9).all();
+    if (in_hard_travel && (lo.array() <= hi.array()).all() &&
+        SegmentClear(BallFromMachine(from), BallFromMachine(inside), options_.travel_clearance)) {
+      lead.push_back(inside);
+      from = inside;
+    }
+  }
+  const Node a = MakeNode(from, true);
   const Node b = MakeNode(to_machine, true);
   auto route = BestRoute(a, b);
   if (!route) return std::nullopt;
-  return route->waypoints;
+  lead.insert(lead.end(), route->waypoints.begin(), route->waypoints.end());
+  return lead;
 }
 
 // --- Planning ------------------------------------------------------------------------------------
@@ -902,6 +941,9 @@ std::string OptionsHash(const RigGeometry& rig, const PlanOptions& o) {
     h.AddDouble(o.start_machine[i]).AddDouble(o.machine.max_rate_mm_per_min[i]);
     h.AddDouble(o.machine.acceleration_mm_per_s2[i]).AddDouble(o.machine.max_travel_mm[i]);
   }
+  if (o.machine.travel_min_mm) {  // as checkpoint_probes: older plans keep their hash
+    for (int i = 0; i < 3; ++i) h.AddDouble((*o.machine.travel_min_mm)[i]);
+  }
   return h.Hex();
 }
 
@@ -1007,6 +1049,8 @@ void MeasureReach(const RigGeometry& rig, const PlanOptions& options, const Reac
     reach.over_z_machine = travel.OverZMachine();
     reach.machine_max.z() = std::max(reach.machine_max.z(), reach.over_z_machine);
     reach.max_travel_mm = options.machine.max_travel_mm;
+    reach.travel_min = options.machine.TravelMin();
+    reach.travel_min_set = options.machine.travel_min_mm.has_value();
     reach.travel_margin = options.travel_limit_margin;
     reach.base_in_machine = rig.machine_from_sensor.translation;
   }
@@ -1324,15 +1368,15 @@ void CheckTravel(const ProbePlan& plan, const MachineSettings& settings, double 
   auto check = [&](const Eigen::Vector3d& m, int plan_index, const std::string& what) {
     for (int a = 0; a < 3; ++a) {
       const double v = Round3(m[a]);
-      const double lo = -settings.max_travel_mm[a] + margin, hi = -margin;
+      const double lo = settings.TravelMin()[a] + margin, hi = settings.TravelMax()[a] - margin;
       if (v < lo - 1e-9 || v > hi + 1e-9 || !std::isfinite(v)) {
         std::ostringstream os;
         os.setf(std::ios::fixed);
         os.precision(3);
         os << (plan_index >= 0 ? "probe " + std::to_string(plan_index) : std::string("park path"))
            << " " << what << ": " << kAxis[a] << " = " << v << " mm is outside the travel [" << lo
-           << ", " << hi << "] ($13" << a << " = " << settings.max_travel_mm[a] << ", margin "
-           << margin << ")";
+           << ", " << hi << "] (travel " << settings.max_travel_mm[a] << " from "
+           << settings.TravelMin()[a] << ", margin " << margin << ")";
         throw TravelLimitError(os.str(), plan_index, a);
       }
     }
@@ -1401,7 +1445,7 @@ nlohmann::json PlanSummaryJson(const ProbePlan& plan, const PlanOptions& options
     drops[std::string(DropReasonName(static_cast<DropReason>(r)))] = plan.dropped.counts[r];
   }
   const auto& m = options.machine;
-  return {
+  nlohmann::json j = {
       {"candidates", plan.candidates},
       {"kept", plan.probes.size()},
       {"dropped", drops},
@@ -1450,6 +1494,8 @@ nlohmann::json PlanSummaryJson(const ProbePlan& plan, const PlanOptions& options
         {"junction_deviation_mm", m.junction_deviation_mm},
         {"planner_blocks", m.planner_blocks}}},
   };
+  if (m.travel_min_mm) j["options"]["machine"]["travel_min_mm"] = Vec(*m.travel_min_mm);
+  return j;
 }
 
 nlohmann::json PlanToJson(const ProbePlan& plan, const PlanOptions& options) {

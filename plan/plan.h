@@ -190,13 +190,16 @@ struct PlanReach {
   // candidate the tool can press, kept or dropped for travel (its approach, its press and its
   // escape: radial if it has one, else up), and of the plane over the sensor's top that travel
   // passes over it at (over_z_machine, TravelPlanner::OverZMachine); the travel they must fit
-  // in, [-max_travel_mm + travel_margin, -travel_margin] per axis; and where the sensor's base
+  // in, [travel_min + travel_margin, travel_min + max_travel_mm - travel_margin] per axis
+  // (travel_min: MachineSettings::TravelMin(), GRBL's -max_travel_mm); and where the sensor's base
   // sits (machine frame).
   bool travel_known = false;
   Eigen::Vector3d machine_min = Eigen::Vector3d::Zero();
   Eigen::Vector3d machine_max = Eigen::Vector3d::Zero();
   double over_z_machine = 0.0;
   Eigen::Vector3d max_travel_mm = Eigen::Vector3d::Zero();
+  Eigen::Vector3d travel_min = Eigen::Vector3d::Zero();
+  bool travel_min_set = false;  // [plan.machine] travel_min_mm given (else GRBL's -max_travel_mm)
   double travel_margin = 0.0;
   Eigen::Vector3d base_in_machine = Eigen::Vector3d::Zero();
   // Stylus (measured when PlanAdvice would speak of reach: a tenth of the candidates or more
@@ -341,7 +344,10 @@ class TravelPlanner {
 
   // Collision-free waypoints (machine frame, excluding both ends) from machine position `from` to
   // `to` (both must be clear), the fastest of: straight, via the escape cylinder, over the top.
-  // nullopt when none is clear.
+  // A `from` whose ball the base plane holds closer than travel_clearance, away from the sensor
+  // (a printer's ball on its bed after homing), first rises straight up; one inside the travel
+  // but within travel_limit_margin of its end (a printer homed at 0) then steps straight in to
+  // the nearest point the margin allows. nullopt when none is clear.
   std::optional<std::vector<Eigen::Vector3d>> Path(const Eigen::Vector3d& from_machine,
                                                    const Eigen::Vector3d& to_machine) const;
   // Rapid time (s) of the path from `from` through `waypoints` to `to` (stops at each waypoint).
@@ -356,6 +362,9 @@ class TravelPlanner {
   // the mount; machine z above which (machine position) the tool clears the sensor's top.
   double EscapeRadius() const { return escape_radius_; }
   double OverZMachine() const { return over_z_machine_; }
+  // The tool's smallest gap to the sensor itself with the ball at `ball` (sensor frame), the
+  // mount's plane left out (a printer's bed is no gel): ball and stylus, mm.
+  double SensorGap(const Eigen::Vector3d& ball) const;
   bool VerticalStylusOnRevolution() const { return exact_stylus_; }
 
   // Escape points of a machine position: radially out (about the sensor axis; upright sensor

@@ -13,6 +13,9 @@
 //   lost-reply            the next `ok` never reaches the host
 //   frame-drop            1-5 camera frames never delivered
 //   frame-corrupt         1-2 camera frames served damaged (garbage rows or black)
+// On a virtual Marlin printer the serial faults are the same, a garbled line is refused and
+// resent, reset and power-cycle reboot the board (`start`, position lost), alarm and lost-position
+// halt it as kill() does, and hold does nothing (a printer has no hold input).
 
 #include <atomic>
 #include <cstdint>

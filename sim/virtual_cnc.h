@@ -93,9 +93,10 @@
 // (MarlinFirmware/Marlin src/gcode/queue.cpp, gcode.cpp, feature/e_parser.h, module/motion.cpp),
 // sharing the serial side, the planner, the clock, the ground truth and the faults above:
 // - Boot: `start`, then a few `echo:` lines; no alarm, no homing lock: Idle, believing 0,0,0
-//   wherever the tool stands. A reboot (PowerCycle, reset_on_open, unplug with power loss) is the
-//   only reset: ResetNow() and ResetDuringNextDwell() reboot the board (its reset pin is the
-//   MCU's).
+//   wherever the tool stands. Output with no host attached is lost (a USB-serial bridge drops it),
+//   reset_on_open or not: a host sees `start` only when the board boots while it listens. A reboot
+//   (PowerCycle, reset_on_open, unplug with power loss) is the only reset: ResetNow() and
+//   ResetDuringNextDwell() reboot the board (its reset pin is the MCU's).
 // - Lines end at '\n' or '\r'; empty lines are skipped without a reply; `;` starts a comment.
 //   A line starting `N<n>` must be the last number + 1 (M110 excepted) and end in `*<checksum>`
 //   (XOR of the bytes before '*'): otherwise `Error:Line Number is not Last Line Number+1, Last
@@ -109,20 +110,21 @@
 //   $110-$112), G4 P<ms>/S<s>, G21, G28 [X Y Z] (each axis in turn X, Y, Z toward its minimum
 //   endstop, which sits at true 0, at $25 then $24 after a bump back of 2 mm; more than 1.5 x
 //   $13x away: `Error:Homing Failed`, then halted as kill()), G90/G91, M17/M18/M84 and M82/M83
-//   (acknowledged, no effect: the steppers stay on), M105 (`ok T:..`), M110 N, M114 (`X:.. Y:.. Z:.. E:.. Count X:.. Y:..
-//   Z:..`, the planned position, 2 decimals), M114 R (the steppers' position, 3 decimals) with
-//   m114_realtime, M115 (FIRMWARE_NAME, Cap: lines), M154 S<s> with auto_report_position, M155
-//   S<s> (temperature reports `T:.. /.. B:.. /.. @:0 B@:0`), M211 [S0|S1] (`echo:Soft endstops:
-//   On  Min:  X.. Y.. Z..   Max:  X.. Y.. Z..`: 0..$13x), M400, M503 (M92 M203 M201 M204 M205
-//   lines from the settings). Heating (M104 M109 M140 M190) is acknowledged and does nothing.
-//   Anything else: `echo:Unknown command: "<line>"`, then ok.
+//   (acknowledged, no effect: the steppers stay on), M105 (`ok T:..`), M110 N, M114 (`X:.. Y:..
+//   Z:.. E:.. Count X:.. Y:.. Z:..`, the planned position, 2 decimals), M114 R (the steppers'
+//   position, 3 decimals) with m114_realtime, M115 (FIRMWARE_NAME, Cap: lines), M154 S<s> with
+//   auto_report_position, M155 S<s> (temperature reports `T:.. /.. B:.. /.. @:0 B@:0`), M211
+//   [S0|S1] (`echo:Soft endstops: On  Min:  X.. Y.. Z..   Max:  X.. Y.. Z..`: 0..$13x), M400, M503
+//   (M92 M203 M201 M204 M205 lines from the settings). Heating (M104 M109 M140 M190) is
+//   acknowledged and does nothing. Anything else: `echo:Unknown command: "<line>"`, then ok.
 // - Soft endstops clamp a move's target into 0..$13x on homed axes, without a message.
 // - Emergency parser: `M112`, `M410`, `M108` act as their bytes arrive, ahead of the queue (the
 //   line itself is then acknowledged as a no-op). M112: the steppers stop dead, `Error:Printer
 //   halted. kill() called!`, and the board ignores everything until it reboots. M410: every
 //   planned move is dropped and the steppers stop dead where they are (position kept).
 // - RaiseAlarmDuringNextMove() halts the printer as kill() does (a thermal runaway, a driver
-//   fault): steppers stopped dead, the kill message, nothing more until a reboot.
+//   fault): steppers stopped dead, the kill message, nothing more until a reboot. FeedHoldPin()
+//   does nothing (a printer has no hold input).
 // Not modelled for Marlin: the command ring read ahead while a command runs (lines are taken one
 // at a time from the RX buffer), ADVANCED_OK, G2/G3, G92 and workspace offsets, bed levelling,
 // temperatures that change, M999, host prompts, SD cards, parenthesised comments.

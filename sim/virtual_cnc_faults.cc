@@ -47,6 +47,7 @@ void VirtualCnc::Impl::ResetNow() {
 void VirtualCnc::Impl::FeedHoldPin() {
   std::lock_guard<std::mutex> lk(mu_);
   if (stop_ || !powered_) return;
+  if (Marlin()) return;  // a printer has no hold input
   rt_feed_hold_ = true;
   cv_.notify_all();
 }

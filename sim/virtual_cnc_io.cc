@@ -88,7 +88,9 @@ void VirtualCnc::Impl::Emit(const std::string& s) {
 
 void VirtualCnc::Impl::Transmit(const std::string& s) {
   if (!plugged_ || !powered_) return;
-  if (options_.reset_on_open && !host_open_) {  // nobody listening: lost
+  // Nobody listening: lost (a printer's USB-serial bridge drops what arrives with the port
+  // closed; GRBL's output waits in the pty unless the board resets on open).
+  if ((options_.reset_on_open || Marlin()) && !host_open_) {
     ++stats_.unheard;
     return;
   }

@@ -232,3 +232,58 @@ TEST_CASE("an unknown fault kind is a usage error naming the known ones", "[cli]
     CHECK_THAT(r.out, Contains("unknown fault 'meteor'") && Contains("frame-corrupt"));
   }
 }
+
+TEST_CASE("demo --firmware marlin runs the rig on a virtual printer through the daemon",
+          "[cli][demo][marlin]") {
+  TempDir dir;
+  const fs::path data = dir.path / "data";
+  const auto r =
+      Gs360("demo --firmware marlin --probes 80 --no-calibrate --data-dir " + data.string());
+  INFO(r.out);
+  REQUIRE(r.status == 0);
+  CHECK_THAT(r.out, Contains("0 taken off the press point, 0 unverifiable"));
+  RunDatabaseOptions ro;
+  ro.read_only = true;
+  RunDatabase db(data / "gs360.db", ro);
+  std::string events;
+  for (const EventRecord& e : db.ListEvents(1, 0, 1000)) events += e.message + "\n";
+  INFO(events);
+  CHECK_THAT(events, Contains("connected to Marlin 2.1"));
+  const RunConfig stored = StoredRunConfig(db, 1);
+  CHECK(stored.machine.firmware == MachineFirmware::kMarlin);
+  REQUIRE(stored.plan.machine.travel_min_mm);
+  CHECK(stored.plan.machine.TravelMax().isApprox(Eigen::Vector3d(235.0, 235.0, 250.0)));
+  CHECK_FALSE(Gs360("demo --firmware smoothie --probes 80").status == 0);
+}
+
+TEST_CASE("docs/daemon.md's Ender-3 example is the printer demo --firmware marlin runs",
+          "[cli][demo][marlin]") {
+  std::ifstream in(fs::path(GS360_SOURCE_DIR) / "docs" / "daemon.md");
+  REQUIRE(in);
+  const std::string doc((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const std::size_t section = doc.find("### Printers (Marlin)");
+  REQUIRE(section != std::string::npos);
+  const std::size_t start = doc.find("```toml\n", section);
+  REQUIRE(start != std::string::npos);
+  const std::size_t end = doc.find("```", start + 8);
+  TempDir dir;
+  const fs::path file = dir.path / "ender3.toml";
+  std::ofstream(file) << doc.substr(start + 8, end - start - 8);
+  const DaemonConfig loaded = LoadDaemonConfig(file.string());
+  RunConfig expected;
+  cli::ApplyPrinterDefaults(&expected);
+  const RunConfig& got = loaded.run;
+  CHECK(got.machine.firmware == MachineFirmware::kMarlin);
+  CHECK(got.rig.base_in_machine.isApprox(expected.rig.base_in_machine));
+  CHECK(got.rig.tool_offset.isApprox(expected.rig.tool_offset));
+  CHECK(got.plan.start_machine.isApprox(expected.plan.start_machine));
+  CHECK(got.plan.machine.max_rate_mm_per_min.isApprox(expected.plan.machine.max_rate_mm_per_min));
+  CHECK(got.plan.machine.acceleration_mm_per_s2.isApprox(
+      expected.plan.machine.acceleration_mm_per_s2));
+  CHECK(got.plan.machine.TravelMin().isApprox(expected.plan.machine.TravelMin()));
+  CHECK(got.plan.machine.TravelMax().isApprox(expected.plan.machine.TravelMax()));
+  CHECK(got.plan.machine.junction_deviation_mm ==
+        Approx(expected.plan.machine.junction_deviation_mm));
+  CHECK(loaded.limits.envelope_min.isApprox(expected.plan.machine.TravelMin()));
+  CHECK(loaded.limits.envelope_max.isApprox(expected.plan.machine.TravelMax()));
+}

@@ -38,14 +38,17 @@ struct RigFixture {
 
   // `candidates`: points sampled (about half are kept on the default cylinder); `time_scale` 0 is
   // instant motion.
-  // `tweak` adjusts the virtual rig's options (firmware, settings) before it is built.
+  // `tweak` adjusts the virtual rig's options (firmware, settings) before it is built;
+  // `configure` the run's configuration before the rig is built from it.
   RigFixture(const std::string& name, int candidates, double time_scale, bool symlink = false,
-             const std::function<void(VirtualRigOptions&)>& tweak = {}) {
+             const std::function<void(VirtualRigOptions&)>& tweak = {},
+             const std::function<void(RunConfig&)>& configure = {}) {
     dir = FreshDir(name);
     db = dir / "run.db";
     config.name = name;
     config.plan.probe_count = candidates;
     config.plan.reference_every = 25;
+    if (configure) configure(config);
     cli::VirtualSetup setup =
         cli::MakeVirtualSetup(config, time_scale, 7, dir / "camera.sock",
                               symlink ? (dir / "ttyCNC").string() : "", tweak);

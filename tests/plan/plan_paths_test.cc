@@ -137,6 +137,44 @@ TEST_CASE("Blocked travels detour around or over the sensor", "[plan]") {
   CheckLegsClear(travel, *rig.profile, table, o, o.start_machine, *from_home, b);
 }
 
+TEST_CASE("On a printer's travel box a homed ball lifts off the bed and steps in", "[plan]") {
+  // An Ender-3-class printer: travel 0..235 x 0..235 x 0..250, the sensor on the bed at its
+  // centre, machine Z 0 where the ball rests on the bed (cli/sim_args.h ApplyPrinterDefaults).
+  RigConfig ro;
+  ro.base_in_machine = Eigen::Vector3d(117.5, 117.5, 0.0);
+  ro.tool_offset = Eigen::Vector3d(0.0, 0.0, ro.ball_radius);
+  const RigGeometry rig = MakeRigGeometry(ro);
+  PlanOptions o;
+  o.probe_count = 60;
+  o.machine.max_travel_mm = Eigen::Vector3d(235.0, 235.0, 250.0);
+  o.machine.travel_min_mm = Eigen::Vector3d::Zero();
+  o.start_machine = Eigen::Vector3d(117.5, 117.5, 60.0);
+  CHECK(o.machine.TravelMax().isApprox(Eigen::Vector3d(235.0, 235.0, 250.0)));
+  const ProbePlan plan = MakeProbePlan(rig, o);
+  REQUIRE(plan.probes.size() > 30);
+  CheckTravel(plan, o.machine, o.travel_limit_margin);  // every position in [0.5, 234.5] etc.
+  for (const PlannedProbe& p : plan.probes) CHECK(p.press_machine.z() > 0.0);
+  // GRBL's box would not hold it: the same plan is outside [-travel, 0].
+  MachineSettings grbl = o.machine;
+  grbl.travel_min_mm.reset();
+  CHECK_THROWS_AS(CheckTravel(plan, grbl, 0.0), TravelLimitError);
+
+  // After G28 the ball rests on the bed at the travel's corner: no gap to the bed, outside the
+  // margin. The path rises straight up, steps into the margin, and goes on clear.
+  const TravelPlanner travel(rig, o);
+  const RadiusTable table(*rig.profile);
+  const Eigen::Vector3d home = Eigen::Vector3d::Zero();
+  const auto path = travel.Path(home, plan.probes.front().approach_machine);
+  REQUIRE(path);
+  REQUIRE(path->size() >= 2);
+  CHECK((*path)[0].head<2>().isApprox(home.head<2>()));  // straight up
+  CHECK((*path)[0].z() > o.travel_clearance);
+  CHECK((*path)[1].minCoeff() >= o.travel_limit_margin - 1e-9);  // inside the margin now
+  CheckLegsClear(travel, *rig.profile, table, o, (*path)[0],
+                 std::vector<Eigen::Vector3d>(path->begin() + 1, path->end()),
+                 plan.probes.front().approach_machine);
+}
+
 TEST_CASE("The tour solver finds the optimal tour of points on a circle", "[plan]") {
   // 200 points on a circle, shuffled; the depot on the circle too. The optimal closed tour is
   // the circle itself.
