@@ -182,7 +182,8 @@ TEST_CASE("marlin: a board that reboots when its port opens is homed by each ses
   CHECK(f.rig->cnc().Stats().boots >= 4);  // power-up, then once per session
 }
 
-TEST_CASE("marlin fault: a halt mid-move stops the run; reset, it resumes", "[daemon][marlin]") {
+TEST_CASE("marlin fault: a halt mid-move stops the run, and once reset it resumes",
+          "[daemon][marlin]") {
   RigFixture f = PrinterFixture("marlin-halt", 30);
   RunEngine engine(f.db);
   const auto run_id = engine.CreateRun(f.config);

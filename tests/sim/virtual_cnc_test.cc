@@ -24,8 +24,8 @@
 #include "sim/virtual_cnc.h"
 #include "tests/wait.h"
 
-using gs360::FaultDirection;
 using gs360::CncFirmware;
+using gs360::FaultDirection;
 using gs360::GrblState;
 using gs360::VirtualCnc;
 using gs360::VirtualCncOptions;
