@@ -111,11 +111,18 @@ double PressedMachineSeconds(const std::filesystem::path& db_path, std::int64_t 
 
 // With faults: resumes a stopped run as a user would (confirming what it asks about), until it
 // is done or kMaxResumes sessions have not finished it.
-Json ResumeUntilDone(DaemonClient& client, std::int64_t id, Json run) {
+Json ResumeUntilDone(DaemonClient& client, std::int64_t id, Json run, VirtualRig& rig) {
   constexpr int kMaxResumes = 500;
   const std::string path = "/api/v1/runs/" + std::to_string(id);
   for (int resumes = 0; run["state"] == "interrupted" && resumes < kMaxResumes; ++resumes) {
     Json body = Json::object();
+    const bool has_error = run.contains("last_error") && run["last_error"].is_string();
+    const std::string error = has_error ? run["last_error"].get<std::string>() : std::string();
+    if (error.find("printer halted") != std::string::npos) {
+      // A halted printer answers nothing until reset: the user presses its reset button.
+      std::printf("  resetting the halted printer as the user would\n");
+      rig.cnc().PowerCycle();
+    }
     if (run.contains("awaiting") && run["awaiting"].is_string()) {
       body["confirm"] = run["awaiting"];
       std::printf("  resuming, confirming the %s as the user would\n",
@@ -220,7 +227,7 @@ int RunDemo(const DemoOptions& o, RunConfig config) {
   client.Post("/api/v1/runs/" + std::to_string(id) + "/start");
   Json run = WatchRun(client, id, stdout, stderr);
   if (faults) {
-    run = ResumeUntilDone(client, id, run);
+    run = ResumeUntilDone(client, id, run, rig);
     std::printf("  injected: %s\n", DescribeFaults(faults->Injected()).c_str());
     faults.reset();  // the calibration runs on a quiet rig
   }

@@ -188,8 +188,9 @@ std::optional<Ask> RunSession::RecoverLostPosition(const std::vector<Eigen::Vect
       return Ask{"position", why +
                                  ", and the ball may be in or near the gel (it was last sent "
                                  "to " +
-                                 Fmt3(sent.back()) +
-                                 "): homing moves Z first and would drag it. Nothing was moved. "
+                                 Fmt3(sent.back()) + "): homing moves " +
+                                 (machine_->HomesZFirst() ? "Z" : "X and Y") +
+                                 " first and would drag it. Nothing was moved. "
                                  "Move the tool clear of the sensor by hand, then " +
                                  resume + " (it homes)."};
     }

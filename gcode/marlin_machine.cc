@@ -208,7 +208,15 @@ void MarlinMachine::StartWorker() {
 
 MachineInfo MarlinMachine::Handshake() {
   auto client = std::make_unique<MarlinClient>(factory_(), options_.client);
-  info_ = client->Connect();
+  try {
+    info_ = client->Connect();
+  } catch (const MarlinError& e) {
+    if (e.kind() != MarlinError::Kind::kTimeout) throw;
+    throw MarlinError(e.kind(), std::string(e.what()) +
+                                    ": the printer does not answer. A halted printer (kill(): "
+                                    "M112, a fault) answers nothing until it is reset: check its "
+                                    "screen, reset it, then resume");
+  }
   MachineInfo info;
   info.firmware = info_.firmware;
   info.description = info_.firmware.empty() ? std::string("a Marlin printer") : info_.firmware;
