@@ -241,6 +241,7 @@ struct VirtualCncStats {
   std::uint64_t blocks_planned = 0;
   std::uint64_t clock_jumps = 0;  // instant mode: machine-clock jumps recorded so far
   std::uint64_t unheard = 0;      // replies lost because no host had the port open (reset_on_open)
+  std::uint64_t keepalives = 0;   // Marlin: "echo:busy: processing" lines sent
 };
 
 class VirtualCnc {

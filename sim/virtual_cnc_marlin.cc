@@ -170,6 +170,7 @@ void VirtualCnc::Impl::MarlinIdle() {
   const double m = MachineNow();
   if (marlin_.in_command && options_.marlin.keepalive_s > 0.0 && m >= marlin_.next_busy) {
     Emit("echo:busy: processing\n");
+    ++stats_.keepalives;
     marlin_.next_busy = m + options_.marlin.keepalive_s;
   }
   if (marlin_.temperature_s > 0.0 && m >= marlin_.next_temperature) {

@@ -141,6 +141,25 @@ TEST_CASE("marlin fault: a garbled line is resent, a lost line or ok retried, no
   }
 }
 
+TEST_CASE("marlin: long waits bring busy keep-alives, which are no time-out", "[daemon][marlin]") {
+  // Ten machine seconds per wall second and a keep-alive every 0.1 machine s: every M400, dwell
+  // and homing prints them, in hundreds, among the replies; none is taken for an ok, none ends a
+  // wait, and nothing needs recovering.
+  RigFixture f = PrinterFixture("marlin-busy", 16, [](VirtualRigOptions& o) {
+    o.cnc.firmware = CncFirmware::kMarlin;
+    o.cnc.time_scale = 10.0;
+    o.cnc.marlin.keepalive_s = 0.1;
+  });
+  RunEngine engine(f.db);
+  const auto run_id = engine.CreateRun(f.config);
+  const RunReport r = engine.Execute(run_id);
+  CHECK(r.outcome == RunOutcome::kDone);
+  CHECK(r.recoveries == 0);
+  CheckCommitted(f, run_id);
+  INFO("keep-alives: " << f.rig->cnc().Stats().keepalives);
+  CHECK(f.rig->cnc().Stats().keepalives >= 20);
+}
+
 TEST_CASE("marlin fault: a reboot mid-run loses the position: homed when clear, else asked",
           "[daemon][marlin]") {
   RigFixture f = PrinterFixture("marlin-reboot", 30);
