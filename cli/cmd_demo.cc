@@ -114,7 +114,11 @@ double PressedMachineSeconds(const std::filesystem::path& db_path, std::int64_t 
 Json ResumeUntilDone(DaemonClient& client, std::int64_t id, Json run, VirtualRig& rig) {
   constexpr int kMaxResumes = 500;
   const std::string path = "/api/v1/runs/" + std::to_string(id);
-  for (int resumes = 0; run["state"] == "interrupted" && resumes < kMaxResumes; ++resumes) {
+  const auto asked = [](const Json& r) {
+    return r["state"] == "interrupted" ||
+           (r["state"] == "created" && r.contains("awaiting") && r["awaiting"].is_string());
+  };
+  for (int resumes = 0; asked(run) && resumes < kMaxResumes; ++resumes) {
     Json body = Json::object();
     const bool has_error = run.contains("last_error") && run["last_error"].is_string();
     const std::string error = has_error ? run["last_error"].get<std::string>() : std::string();
@@ -226,8 +230,13 @@ int RunDemo(const DemoOptions& o, RunConfig config) {
   }
   client.Post("/api/v1/runs/" + std::to_string(id) + "/start");
   Json run = WatchRun(client, id, stdout, stderr);
-  if (faults) {
+  // A printer rebooted by the open asks before its first homing (docs/running.md): the demo
+  // answers as its user would, as it does after a fault.
+  const bool asked_at_start = run.contains("awaiting") && run["awaiting"].is_string();
+  if (faults || asked_at_start) {
     run = ResumeUntilDone(client, id, run, rig);
+  }
+  if (faults) {
     std::printf("  injected: %s\n", DescribeFaults(faults->Injected()).c_str());
     faults.reset();  // the calibration runs on a quiet rig
   }

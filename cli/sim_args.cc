@@ -108,6 +108,9 @@ void AddSimArgs(CLI::App* cmd, SimArgs* args) {
                   "The blue ring's radius, fraction of the base radius (default 0.35)")
       ->check(RangeOf(kFraction));
   AddFaultArgs(cmd, &args->faults, &args->fault_every);
+  cmd->add_flag("--reset-on-open", args->reset_on_open,
+                "The controller reboots whenever a host opens its port (DTR), 0.5 s of bootloader "
+                "before it answers");
 }
 
 void AddFaultArgs(CLI::App* cmd, std::string* faults, double* every) {
@@ -276,6 +279,10 @@ void ApplySimArgs(const SimArgs& args, VirtualRigOptions* options) {
                                 FormatFixed(args.perturbation, 3));
   }
   options->cnc.firmware = ParseCncFirmware(args.firmware);
+  if (args.reset_on_open) {
+    options->cnc.reset_on_open = true;
+    options->cnc.boot_delay = std::chrono::milliseconds(500);
+  }
   TruePerturbationOptions& p = options->rig.perturbation;
   const double s = args.perturbation;
   p.translation_mm *= s;

@@ -41,6 +41,9 @@ struct SimArgs {
   // "all"), one every ~fault_every presses.
   std::string faults;
   double fault_every = 50.0;
+  // The board reboots whenever a host opens its port (an Arduino's DTR reset), after 0.5 s of
+  // bootloader: each session meets a freshly booted controller.
+  bool reset_on_open = false;
   // The virtual controller's firmware: "grbl", "grblhal" or "marlin" (a printer; without
   // --config the rig is mounted on an Ender-3-class printer: ApplyPrinterDefaults).
   std::string firmware = "grbl";
