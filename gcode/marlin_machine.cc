@@ -445,8 +445,12 @@ std::optional<MachineStatus> MarlinMachine::QueryStatus(std::chrono::millisecond
   const auto job = Enqueue({"M114 R"}, "M114 R", false, static_cast<int>(Job::Kind::kStatus));
   const MachineReply r = Source(job).Wait(timeout);
   if (!r.Ok()) return std::nullopt;
-  std::lock_guard lock(mu_);
-  return latest_;
+  std::lock_guard lock(mu_);  // job->position is written under it, before the job resolves
+  // This query's own answer: an earlier report must not stand in for a position it lacked.
+  if (!job->position || !latest_) return std::nullopt;
+  MachineStatus s = *latest_;
+  s.machine_position = job->position;
+  return s;
 }
 
 MachineWaitResult MarlinMachine::WaitIdle(std::chrono::milliseconds timeout) {

@@ -76,6 +76,8 @@ tsan_tests=(
   '^storage:a failed background commit'
   # the GRBL client's reader thread against the virtual CNC's firmware and I/O threads
   '^gcode:client and virtual CNC:'
+  # the Marlin machine's worker thread against the virtual printer's firmware and I/O threads
+  '^gcode:MarlinMachine: '
   '^gcode:the client streams over TCP'
   '^sim:Fault: '
   # the capture frame server and its socket client
