@@ -68,10 +68,7 @@ void RegisterBenchCommands(CLI::App& app, CommandContext& ctx) {
       ->capture_default_str();
   acq->add_option("--db", o.db, "Database (default: temp file, removed afterwards)");
   acq->add_option("--seed", o.seed, "Seed")->capture_default_str();
-  acq->add_option("--firmware", o.firmware,
-                  "grbl, grblhal, or marlin (the rig on an Ender-3-class printer's bed)")
-      ->check(CLI::IsMember({"grbl", "grblhal", "marlin"}))
-      ->capture_default_str();
+  AddFirmwareOption(acq, &o.firmware, "the rig on an Ender-3-class printer's bed");
   acq->callback([&ctx] {
     RunConfig config;
     const CncFirmware firmware = ParseCncFirmware(o.firmware);

@@ -64,11 +64,8 @@ void RegisterSimCommands(CLI::App& app, CommandContext& ctx) {
       "sim-cnc",
       "Serve a virtual GRBL 1.1 CNC (or grblHAL, or a Marlin printer) on a pseudo-terminal "
       "(prints its path)");
-  cnc->add_option("--firmware", o.firmware,
-                  "grbl (GRBL 1.1h), grblhal, or marlin (a Marlin 2.1 printer of the Ender-3 "
-                  "class: 235 x 235 x 250 mm, Z at 5 mm/s)")
-      ->check(CLI::IsMember({"grbl", "grblhal", "marlin"}))
-      ->capture_default_str();
+  AddFirmwareOption(cnc, &o.firmware,
+                    "a Marlin 2.1 printer of the Ender-3 class: 235 x 235 x 250 mm, Z at 5 mm/s");
   cnc->add_option("--time-scale", o.time_scale, "Machine seconds per wall second (0 = instant)")
       ->capture_default_str();
   cnc->add_option("--rx-buffer", o.rx_buffer, "Receive buffer bytes reported by $I")

@@ -42,6 +42,13 @@ CncFirmware ParseCncFirmware(const std::string& name) {
                     kExitUsage);
 }
 
+void AddFirmwareOption(CLI::App* cmd, std::string* firmware, const std::string& marlin) {
+  cmd->add_option("--firmware", *firmware,
+                  "The virtual controller: grbl (GRBL 1.1h), grblhal, or marlin (" + marlin + ")")
+      ->check(CLI::IsMember({"grbl", "grblhal", "marlin"}))
+      ->capture_default_str();
+}
+
 void ApplyPrinterDefaults(RunConfig* config) {
   MachineSettings& m = config->plan.machine;
   const GrblSettings printer = GrblSettings::PrinterDefaults();
@@ -58,11 +65,9 @@ void ApplyPrinterDefaults(RunConfig* config) {
 }
 
 void AddSimArgs(CLI::App* cmd, SimArgs* args) {
-  cmd->add_option("--firmware", args->firmware,
-                  "The virtual controller: grbl (GRBL 1.1h), grblhal, or marlin (a Marlin 2.1 "
-                  "printer; without --config the rig sits on an Ender-3-class printer's bed)")
-      ->check(CLI::IsMember({"grbl", "grblhal", "marlin"}))
-      ->capture_default_str();
+  AddFirmwareOption(cmd, &args->firmware,
+                    "a Marlin 2.1 printer; without --config the rig sits on an Ender-3-class "
+                    "printer's bed");
   cmd->add_option("--config", args->config,
                   "A gs360d.toml whose [rig] (shape or mesh, fins, lens, camera height) and [plan] "
                   "describe the virtual rig, and whose [sim] sets the options below (the command "

@@ -52,6 +52,9 @@ struct SimArgs {
 // "grbl", "grblhal", "marlin" -> the virtual controller's firmware. Throws ClientError (usage)
 // naming the three for anything else.
 CncFirmware ParseCncFirmware(const std::string& name);
+// Adds `--firmware grbl|grblhal|marlin` (checked against the three) to `cmd`; `marlin` says what
+// the command then runs on.
+void AddFirmwareOption(CLI::App* cmd, std::string* firmware, const std::string& marlin);
 
 // The built-in rig mounted on a Marlin printer of the Ender-3 class (GrblSettings::
 // PrinterDefaults): [plan.machine] 500/500/5 mm/s, 500/500/100 mm/s^2, travel 0..235 x 0..235 x

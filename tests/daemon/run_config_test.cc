@@ -117,3 +117,39 @@ TEST_CASE("the impression check: derived by default, a user's threshold, an olde
   j["engine"]["impression_min_snr"] = -1.0;
   CHECK_THROWS_WITH(RunConfigFromJson(j, "mem"), Catch::Contains("engine.impression_min_snr"));
 }
+
+TEST_CASE("machine.firmware and plan.machine.travel_min_mm: stored, and refused when wrong",
+          "[daemon][config]") {
+  RunConfig c;
+  c.machine.uri = "/dev/ttyUSB0";
+  c.camera.uri = "libcamera:0";
+  c.machine.firmware = MachineFirmware::kMarlin;
+  c.plan.machine.travel_min_mm = Eigen::Vector3d(0.0, 0.0, 0.0);
+  const RunConfig back = RunConfigFromJson(RunConfigToJson(c), "mem");
+  CHECK(back.machine.firmware == MachineFirmware::kMarlin);
+  REQUIRE(back.plan.machine.travel_min_mm);
+  CHECK(back.plan.machine.TravelMax().isApprox(c.plan.machine.max_travel_mm));
+  // Absent, GRBL's [-travel, 0] and "auto": what runs stored before the keys read as.
+  RunConfig defaults;
+  defaults.machine.uri = "/dev/ttyUSB0";
+  defaults.camera.uri = "libcamera:0";
+  const RunConfig plain = RunConfigFromJson(RunConfigToJson(defaults), "mem");
+  CHECK_FALSE(plain.plan.machine.travel_min_mm);
+  CHECK(plain.machine.firmware == MachineFirmware::kAuto);
+
+  const auto dir = test::FreshDir("config-firmware");
+  auto p = Write(dir, R"({"machine": {"uri": "/dev/x", "firmware": "smoothieware"},
+                         "camera": {"uri": "v4l2:0"}})");
+  CHECK_THROWS_WITH(LoadRunConfigFile(p), Catch::Contains("machine.firmware") &&
+                                              Catch::Contains("smoothieware") &&
+                                              Catch::Contains("\"marlin\""));
+  p = Write(dir, R"({"machine": {"uri": "/dev/x", "firmware": 2}, "camera": {"uri": "v4l2:0"}})");
+  CHECK_THROWS_WITH(LoadRunConfigFile(p), Catch::Contains("machine.firmware"));
+  p = Write(dir, R"({"machine": {"uri": "/dev/x"}, "camera": {"uri": "v4l2:0"},
+                    "plan": {"machine": {"travel_min_mm": [0, "low", 0]}}})");
+  CHECK_THROWS_WITH(LoadRunConfigFile(p), Catch::Contains("travel_min_mm"));
+  p = Write(dir, R"({"machine": {"uri": "/dev/x"}, "camera": {"uri": "v4l2:0"},
+                    "plan": {"machine": {"travel_min_mm": [0, 0, 1e300]}}})");
+  CHECK_THROWS_WITH(LoadRunConfigFile(p), Catch::Contains("travel_min_mm"));
+  std::filesystem::remove_all(dir);
+}
