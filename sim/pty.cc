@@ -2,6 +2,7 @@
 
 #include <fcntl.h>
 #include <pty.h>
+#include <sys/inotify.h>
 #include <termios.h>
 #include <unistd.h>
 
@@ -22,12 +23,15 @@ std::string ErrnoText(const std::string& what) {
 }  // namespace
 
 Pty::Pty(Pty&& other) noexcept
-    : master_fd_(std::exchange(other.master_fd_, -1)), slave_path_(std::move(other.slave_path_)) {}
+    : master_fd_(std::exchange(other.master_fd_, -1)),
+      watch_fd_(std::exchange(other.watch_fd_, -1)),
+      slave_path_(std::move(other.slave_path_)) {}
 
 Pty& Pty::operator=(Pty&& other) noexcept {
   if (this != &other) {
     Close();
     master_fd_ = std::exchange(other.master_fd_, -1);
+    watch_fd_ = std::exchange(other.watch_fd_, -1);
     slave_path_ = std::move(other.slave_path_);
   }
   return *this;
@@ -42,9 +46,28 @@ void Pty::Close() {
     ::close(master_fd_);
     master_fd_ = -1;
   }
+  if (watch_fd_ >= 0) {
+    ::close(watch_fd_);
+    watch_fd_ = -1;
+  }
 }
 
-Pty Pty::Open(const std::string& avoid_path) {
+int Pty::TakeOpens() {
+  if (watch_fd_ < 0) return 0;
+  int opens = 0;
+  alignas(inotify_event) char buf[4096];
+  ssize_t n;
+  while ((n = ::read(watch_fd_, buf, sizeof(buf))) > 0) {
+    for (ssize_t off = 0; off < n;) {
+      const auto* e = reinterpret_cast<const inotify_event*>(buf + off);
+      if (e->mask & IN_OPEN) ++opens;
+      off += static_cast<ssize_t>(sizeof(inotify_event) + e->len);
+    }
+  }
+  return opens;
+}
+
+Pty Pty::Open(const std::string& avoid_path, bool watch_opens) {
   // Keep rejected pairs open until a different path comes up, so the kernel cannot hand the
   // same number back.
   std::vector<int> rejected;
@@ -83,6 +106,15 @@ Pty Pty::Open(const std::string& avoid_path) {
   }
   for (int fd : rejected) ::close(fd);
   if (!pty.IsOpen()) throw std::runtime_error("openpty kept returning " + avoid_path);
+  if (watch_opens) {
+    // Best effort: without a watch (inotify's per-user limits), POLLHUP still tells most opens.
+    pty.watch_fd_ = ::inotify_init1(IN_NONBLOCK | IN_CLOEXEC);
+    if (pty.watch_fd_ >= 0 &&
+        ::inotify_add_watch(pty.watch_fd_, pty.slave_path_.c_str(), IN_OPEN) < 0) {
+      ::close(pty.watch_fd_);
+      pty.watch_fd_ = -1;
+    }
+  }
   return pty;
 }
 

@@ -117,7 +117,7 @@ VirtualCnc::Impl::Impl(const VirtualCncOptions& options)
     throw std::runtime_error(std::string("VirtualCnc: pipe2 failed: ") + std::strerror(errno));
   }
   try {
-    pty_ = Pty::Open();
+    pty_ = Pty::Open("", options_.reset_on_open);
     if (!options_.symlink_path.empty()) ReplaceSymlink(pty_.slave_path(), options_.symlink_path);
   } catch (...) {
     ::close(wake_[0]);
@@ -196,7 +196,7 @@ void VirtualCnc::Impl::Unplug(const UnplugOptions& unplug) {
 void VirtualCnc::Impl::ReplugLocked() {
   if (plugged_ || stop_) return;
   const std::string old_path = pty_.slave_path();
-  Pty fresh = Pty::Open(old_path);
+  Pty fresh = Pty::Open(old_path, options_.reset_on_open);
   pty_ = std::move(fresh);
   plugged_ = true;
   host_open_ = false;

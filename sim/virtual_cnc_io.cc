@@ -104,6 +104,7 @@ void VirtualCnc::Impl::IoMain() {
   int last_fd = -1;
   while (true) {
     int fd = -1;
+    int watch = -1;
     bool want_write = false;
     int timeout_ms = -1;
     {
@@ -126,7 +127,10 @@ void VirtualCnc::Impl::IoMain() {
           replug_at_ = now + std::chrono::milliseconds(100);
         }
       }
-      if (plugged_) fd = pty_.master_fd();
+      if (plugged_) {
+        fd = pty_.master_fd();
+        watch = pty_.open_watch_fd();
+      }
       if (fd != last_fd) {
         hup = true;
         last_fd = fd;
@@ -144,12 +148,12 @@ void VirtualCnc::Impl::IoMain() {
       if (replug_at_) limit(*replug_at_);
       if (fd >= 0 && hup) limit(now + kHupPollInterval);
     }
-    pollfd fds[2];
+    pollfd fds[3];
     fds[0] = {wake_[0], POLLIN, 0};
     int nfds = 1;
+    if (watch >= 0) fds[nfds++] = {watch, POLLIN, 0};
     if (fd >= 0 && !hup) {
-      fds[1] = {fd, static_cast<short>(POLLIN | (want_write ? POLLOUT : 0)), 0};
-      nfds = 2;
+      fds[nfds++] = {fd, static_cast<short>(POLLIN | (want_write ? POLLOUT : 0)), 0};
     }
     ::poll(fds, static_cast<nfds_t>(nfds), timeout_ms);
     if (fds[0].revents & POLLIN) {
@@ -163,11 +167,12 @@ void VirtualCnc::Impl::IoMain() {
     Lock lk(mu_);
     if (stop_ || close_request_ || !plugged_ || pty_.master_fd() != fd) continue;
     const bool now_hup = (probe.revents & POLLHUP) != 0;
-    if (now_hup && host_open_) host_open_ = false;
-    if (!now_hup && !host_open_) {
-      host_open_ = true;
-      if (options_.reset_on_open) Reboot();  // the DTR pulse resets the board
-    }
+    // The DTR pulse of each open resets the board. Counted by the watch where there is one: a
+    // host that closes and reopens the port between two of these looks leaves no POLLHUP.
+    const int opens = pty_.TakeOpens();
+    const bool opened = watch >= 0 ? opens > 0 : !now_hup && !host_open_;
+    host_open_ = !now_hup;
+    if (opened && options_.reset_on_open) Reboot();
     hup = now_hup;
     if (probe.revents & POLLIN) ReadFromHost(fd);
     if (!wire_.empty() && (probe.revents & POLLOUT)) {

@@ -748,6 +748,25 @@ TEST_CASE("reset_on_open: opening the port reboots the controller", "[virtual_cn
   CHECK(cnc.TruePositionNow()[0] == Approx(-5.0));
 }
 
+TEST_CASE("reset_on_open: a port closed and reopened at once still reboots the controller",
+          "[virtual_cnc]") {
+  // A session that ends and the next that starts a few microseconds later leave no POLLHUP for
+  // the board to see: each open is a DTR pulse all the same, and each host hears the welcome.
+  VirtualCncOptions o = FastOptions(0);
+  o.reset_on_open = true;
+  o.boot_delay = std::chrono::milliseconds(20);
+  VirtualCnc cnc(o);
+  std::optional<Host> host;
+  host.emplace(cnc.PtyPath());
+  REQUIRE(host->Line() == std::optional<std::string>("Grbl 1.1h ['$' for help]"));
+  for (int session = 0; session < 5; ++session) {
+    host.reset();
+    host.emplace(cnc.PtyPath());  // the previous host's close and this open, back to back
+    CHECK(host->Line() == std::optional<std::string>("Grbl 1.1h ['$' for help]"));
+  }
+  CHECK(cnc.Stats().boots == 7);  // power-up, then one per open
+}
+
 TEST_CASE("RunVirtualCncForeground prints the pty path and stops on SIGTERM", "[virtual_cnc]") {
 #if defined(__SANITIZE_THREAD__)
   SUCCEED("fork() with threads is not supported under ThreadSanitizer");
