@@ -31,13 +31,14 @@
 #include <string>
 #include <vector>
 
+#include "base/version.h"
 #include "recon/mlp.h"
 
 namespace gs360 {
 
 struct OnnxExportOptions {
   std::string model_name = "gs360_slopes_mlp";
-  std::string gs360_version = "0.1.0";  // written as producer_version and metadata
+  std::string gs360_version{Version()};  // written as producer_version and metadata
   std::string input_name = "input";
   std::string output_name = "slopes";
   std::string input_description =

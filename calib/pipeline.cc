@@ -16,6 +16,7 @@
 
 #include "base/fields.h"
 #include "base/hash.h"
+#include "base/version.h"
 #include "calib/onnx_export.h"
 #include "calib/report.h"
 #include "geometry/bvh.h"
@@ -932,7 +933,7 @@ Json Calibration::ExportModel(const std::string& name, const std::string& versio
   ModelBundle bundle;
   bundle.name = name;
   bundle.version = version;
-  bundle.gs360_version = "0.1.0";
+  bundle.gs360_version = std::string(Version());
   bundle.created_at = static_cast<double>(std::chrono::duration_cast<std::chrono::seconds>(
                                               std::chrono::system_clock::now().time_since_epoch())
                                               .count());

@@ -9,6 +9,7 @@
 #include <iostream>
 
 #include "base/json_reader.h"
+#include "base/version.h"
 #include "cli/commands.h"
 #include "cli/daemon_client.h"
 
@@ -19,7 +20,7 @@ int main(int argc, char** argv) {
   spdlog::set_default_logger(spdlog::stderr_color_mt("gs360"));
 
   CLI::App app{"gs360: controller and calibration for a GelSight360 calibration rig"};
-  app.set_version_flag("--version", "gs360 0.1.0");
+  app.set_version_flag("--version", gs360::VersionLine("gs360"));
   app.fallthrough();  // global options may come after the command too
   gs360::cli::CommandContext ctx;
   ctx.daemon_url = gs360::cli::DaemonClient::DefaultUrl();

@@ -12,6 +12,7 @@
 
 #include "base/hash.h"
 #include "base/json_reader.h"
+#include "base/version.h"
 #include "daemon/calibration_inputs.h"
 #include "daemon/calibration_jobs.h"
 #include "daemon/convergence.h"
@@ -270,7 +271,8 @@ Json Daemon::Info() const {
   }
   const RigConfig& rig = config_.run.rig;
   return {{"name", "gs360d"},
-          {"version", "0.1.0"},
+          {"version", std::string(Version())},
+          {"commit", std::string(Commit())},
           {"api", "v1"},
           {"started_at", started_at_},
           {"uptime_s", UnixNow() - started_at_},

@@ -20,6 +20,7 @@
 #include <spdlog/spdlog.h>
 
 #include "base/json_reader.h"
+#include "base/version.h"
 #include "daemon/daemon.h"
 #include "daemon/http_api.h"
 
@@ -138,7 +139,7 @@ int main(int argc, char** argv) {
   CLI::App app{
       "gs360d: the gs360 daemon. Runs calibration acquisitions on one rig, serves the HTTP API "
       "(/api/v1) and the dashboard (/). See docs/daemon.md."};
-  app.set_version_flag("--version", "gs360d 0.1.0");
+  app.set_version_flag("--version", gs360::VersionLine("gs360d"));
   Args a;
   app.add_option("-c,--config", a.config, "Configuration file (TOML); without it, the defaults");
   app.add_option("--listen", a.listen, "Address to bind (default 127.0.0.1)");

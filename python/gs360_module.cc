@@ -20,6 +20,7 @@
 #include <string>
 #include <vector>
 
+#include "base/version.h"
 #include "recon/contacts.h"
 #include "recon/model_bundle.h"
 
@@ -137,6 +138,8 @@ class Model {
 PYBIND11_MODULE(gs360, m) {
   using gs360::Model;
   m.doc() = "gs360: tactile frames to depth with an exported GelSight360 model";
+  m.attr("__version__") = std::string(gs360::Version());
+  m.attr("__commit__") = std::string(gs360::Commit());
   py::class_<Model, std::shared_ptr<Model>>(m, "Model")
       .def_static("load", &Model::Load, py::arg("path"), py::arg("mlp_stride") = 2,
                   "Loads a .gs360model bundle (checked: format, checksum, every part)")

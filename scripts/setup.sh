@@ -6,6 +6,9 @@
 #                            and a bounded run of each libFuzzer target (scripts/fuzz.sh)
 #   scripts/setup.sh demo    build and run `gs360 demo` (the simulated rig, end to end)
 #   scripts/setup.sh build   install and build only
+#   scripts/setup.sh package build the .deb to distribute (build-package/gs360_<version>_<arch>.deb:
+#                            a portable build, GS360_NATIVE=OFF, prefix /usr) and check it
+#                            (scripts/check_package.sh)
 # Idempotent: a second run installs nothing and rebuilds only what changed.
 # Environment: BUILD_DIR (default build), JOBS (default nproc), GS360_SKIP_APT=1 to skip apt,
 # GS360_SANITIZERS=0 to skip the sanitizer builds in test mode, GS360_FUZZ=0 the fuzz targets.
@@ -39,6 +42,10 @@ packages=(
 if [ "$mode" = test ]; then
   packages+=(chromium clang-format clang libclang-rt-14-dev)
 fi
+# The package's checks (scripts/check_package.sh): lintian, and dpkg-shlibdeps for its dependencies.
+if [ "$mode" = test ] || [ "$mode" = package ]; then
+  packages+=(lintian dpkg-dev)
+fi
 
 missing=()
 for p in "${packages[@]}"; do
@@ -53,6 +60,20 @@ if [ ${#missing[@]} -gt 0 ] && [ "${GS360_SKIP_APT:-0}" != 1 ]; then
   export DEBIAN_FRONTEND=noninteractive
   "${sudo_cmd[@]}" apt-get update -q
   "${sudo_cmd[@]}" apt-get install -y -q --no-install-recommends "${missing[@]}"
+fi
+
+if [ "$mode" = package ]; then
+  # Its own build folder: the binaries of a package must run on any x86-64 CPU, not only this
+  # one's (GS360_NATIVE=OFF), and only what is installed is built.
+  package_dir=${PACKAGE_BUILD_DIR:-$here/build-package}
+  cmake -S "$here" -B "$package_dir" -DCMAKE_BUILD_TYPE=Release -DGS360_NATIVE=OFF \
+    -DGS360_BUILD_TESTS=OFF -DCMAKE_INSTALL_PREFIX=/usr
+  cmake --build "$package_dir" -j "$jobs" --target gs360_installables
+  (cd "$package_dir" && cpack --config CPackConfig.cmake)
+  deb=$(ls "$package_dir"/gs360_*.deb)
+  "$here/scripts/check_package.sh" "$package_dir" "$deb"
+  echo "setup: package $deb"
+  exit 0
 fi
 
 cmake -S "$here" -B "$build_dir" -DCMAKE_BUILD_TYPE=Release
@@ -75,7 +96,7 @@ case "$mode" in
     "$build_dir/cli/gs360" demo "$@"
     ;;
   *)
-    echo "setup: unknown mode '$mode' (expected build, test or demo)" >&2
+    echo "setup: unknown mode '$mode' (expected build, test, demo or package)" >&2
     exit 2
     ;;
 esac

@@ -11,12 +11,14 @@
 
 #include <atomic>
 #include <fstream>
+#include <regex>
 #include <set>
 #include <sstream>
 
 #include <nlohmann/json.hpp>
 
 #include "api_helpers.h"
+#include "base/version.h"
 #include "daemon_fixture.h"
 #include "geometry/mesh.h"
 #include "geometry/shapes.h"
@@ -292,6 +294,24 @@ TEST_CASE("api: uploaded meshes are checked and addressed by id", "[daemon][api]
   CHECK(Body(r)["error"]["field"] == "mesh");
   // Only the good mesh was kept.
   CHECK(Body(c.Get("/api/v1/meshes"))["meshes"].size() == 1);
+}
+
+TEST_CASE("api: info reports the version and the commit the daemon was built from",
+          "[daemon][api]") {
+  test::RigFixture f("api-info", 40, 0.0);
+  test::InProcessDaemon d(test::ConfigFor(f));
+  httplib::Client c = d.Client();
+  const auto r = c.Get("/api/v1/info");
+  REQUIRE(r);
+  REQUIRE(r->status == 200);
+  const nlohmann::json info = nlohmann::json::parse(r->body);
+  CHECK(info.at("version") == std::string(Version()));
+  CHECK(std::regex_match(std::string(Version()), std::regex(R"(\d+\.\d+\.\d+)")));
+  const std::string commit = info.at("commit");
+  CHECK(commit == std::string(Commit()));
+  // A build from this git clone knows its commit (a tarball build says "unknown").
+  CHECK(std::regex_match(commit, std::regex("[0-9a-f]{12}(-dirty)?")));
+  CHECK(VersionLine("gs360d") == "gs360d " + std::string(Version()) + " (commit " + commit + ")");
 }
 
 TEST_CASE("api: bad requests get 400 naming the field, and the daemon keeps serving",
