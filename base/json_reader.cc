@@ -202,6 +202,36 @@ void JsonReader::Get(const char* key, std::vector<int>& out) {
   out = std::move(values);
 }
 
+void JsonReader::Get(const char* key, std::vector<std::string>& out) {
+  const auto* v = Find(key);
+  if (!v) return;
+  if (!v->is_array()) Fail(key, "expected a list of strings, got " + v->dump());
+  std::vector<std::string> values;
+  for (const auto& e : *v) {
+    if (!e.is_string()) Fail(key, "expected a list of strings, got " + v->dump());
+    values.push_back(e.get<std::string>());
+  }
+  out = std::move(values);
+}
+
+void JsonReader::Objects(const char* key,
+                         const std::function<void(JsonReader&, std::size_t)>& read) {
+  const auto* v = Find(key);
+  if (!v) return;
+  if (!v->is_array()) Fail(key, std::string("expected a list of tables, got ") + v->type_name());
+  for (std::size_t i = 0; i < v->size(); ++i) {
+    const std::string path = FieldPath(key) + "[" + std::to_string(i) + "]";
+    if (!(*v)[i].is_object()) {
+      throw ConfigError(WhereField(where_, lines_, path) + ": " + path +
+                            ": expected a table, got " + (*v)[i].type_name(),
+                        path);
+    }
+    JsonReader child((*v)[i], where_, path, lines_);
+    read(child, i);
+    child.RejectUnknown();
+  }
+}
+
 void JsonReader::Object(const char* key, const std::function<void(JsonReader&)>& read) {
   const auto* v = Find(key);
   if (!v) return;

@@ -63,6 +63,7 @@ class JsonReader {
   void Get(const char* key, Eigen::Vector3d& out);
   void Get(const char* key, std::vector<double>& out);
   void Get(const char* key, std::vector<int>& out);
+  void Get(const char* key, std::vector<std::string>& out);
   // A number from a user, in its field's range: anything else (a string, a fraction or a float
   // such as 2e9 for an integer, a value outside) fails naming the range, e.g. "plan.probe_count:
   // expected an integer in 1..1000000, got 2000000000". Checked here, as the value is read, so
@@ -72,6 +73,9 @@ class JsonReader {
   void Get(const char* key, Eigen::Vector3d& out, const NumberRange& range);  // each coordinate
   // Nested object: calls `read` with a reader for it when present.
   void Object(const char* key, const std::function<void(JsonReader&)>& read);
+  // A list of objects (TOML's [[key]] tables): calls `read` with a reader for each and its index;
+  // their fields are named "key[i].field".
+  void Objects(const char* key, const std::function<void(JsonReader&, std::size_t)>& read);
   const nlohmann::json* Raw(const char* key);  // marks the key as known; nullptr if absent
 
   // Throws ConfigError for keys that no getter asked for (typos must not pass silently).

@@ -110,6 +110,7 @@ Daemon::Daemon(DaemonConfig config) : config_(std::move(config)) {
       config_.data_dir / "runs", config_.DatabasePath(), config_.calibration.threads, hub_);
   convergence_ = std::make_unique<ConvergenceWatch>(
       config_.DatabasePath(), config_.calibration.checkerboards, *calibration_, hub_);
+  StartNotifications();
   pump_ = std::thread([this] { PumpEvents(); });
 }
 
@@ -127,6 +128,7 @@ void Daemon::MarkDeadRunsInterrupted() {
                    "the daemon stopped while this run was running; the machine was not moved "
                    "since. Resume it when the rig is ready.");
     spdlog::warn("run {} was running when the daemon stopped: now interrupted", run.id);
+    unclean_runs_.push_back(run.id);
   }
 }
 
@@ -141,7 +143,37 @@ void Daemon::Shutdown() {
   pump_wake_.notify_all();
   if (pump_.joinable()) pump_.join();
   calibration_->Stop();
+  // The last run's end reaches the notifiers before the hub closes, and goes out if it can.
+  if (notify_feed_) notify_feed_->Drain(std::chrono::seconds(2));
   hub_.Close();
+  notify_feed_.reset();
+  if (notifier_) notifier_->WaitIdle(std::chrono::seconds(5));
+}
+
+void Daemon::StartNotifications() {
+  notifier_ = std::make_unique<Notifier>(config_.notify);
+  if (notifier_->size() > 0) {
+    spdlog::info("notifications: {} notifier{}", notifier_->size(),
+                 notifier_->size() == 1 ? "" : "s");
+  }
+  NotifyFeed::Sources sources;
+  sources.run = [this](std::int64_t id) { return GetRun(id); };
+  sources.calibration = [this](std::int64_t id) { return calibration_->View(id); };
+  sources.dashboard_url = [this] {
+    std::lock_guard lock(mutex_);
+    return url_.empty() ? std::string() : url_ + "/";
+  };
+  notify_feed_ = std::make_unique<NotifyFeed>(hub_, *notifier_, std::move(sources), unclean_runs_);
+}
+
+Json Daemon::NotifyView() const {
+  return notifier_->View();
+}
+
+std::optional<Json> Daemon::NotifyTest(std::int64_t run) {
+  if (run != 0 && !Reader().GetRun(run)) return std::nullopt;
+  notify_feed_->Send(NotifyEvent::kTest, run, "a test notification from gs360d");
+  return Json{{"sent_to", notifier_->size()}};
 }
 
 void Daemon::FollowPortLock() {

@@ -38,6 +38,8 @@
 #include "daemon/daemon_config.h"
 #include "daemon/event_hub.h"
 #include "daemon/instance_lock.h"
+#include "daemon/notifier.h"
+#include "daemon/notify_feed.h"
 #include "daemon/run_engine.h"
 
 namespace gs360 {
@@ -96,6 +98,11 @@ class Daemon {
   // The file on disk, when the calibration has produced it.
   std::optional<std::filesystem::path> FileOf(std::int64_t run_id, RunFile file) const;
   nlohmann::json ListMeshes() const;
+  // The configured notifiers (without secrets), their counts and last deliveries.
+  nlohmann::json NotifyView() const;
+  // Sends a test notification to every notifier (about `run` when not 0): {"sent_to": N};
+  // nullopt when there is no such run.
+  std::optional<nlohmann::json> NotifyTest(std::int64_t run);
 
   // ---- actions ----
   // Plans a run from a request ({"name", "shape" | "mesh", "probes", "plan", "plan_only"}; see
@@ -122,6 +129,7 @@ class Daemon {
  private:
   RunDatabase& Reader() const;
   void MarkDeadRunsInterrupted();
+  void StartNotifications();
   ActionResult Launch(std::int64_t run_id, bool resume, const std::string& confirm);
   void WatchSession(std::int64_t run_id);
   void PumpEvents();
@@ -143,6 +151,10 @@ class Daemon {
   std::filesystem::path port_lock_warned_;
   double started_at_ = 0.0;
   EventHub hub_;
+  // Declared after the hub they read and before what they ask: destroyed first.
+  std::unique_ptr<Notifier> notifier_;
+  std::unique_ptr<NotifyFeed> notify_feed_;
+  std::vector<std::int64_t> unclean_runs_;  // runs the previous daemon left running
   std::unique_ptr<CalibrationJobs> calibration_;
   std::unique_ptr<ConvergenceWatch> convergence_;
 

@@ -33,7 +33,13 @@ nlohmann::json ToJson(const toml::node& node, const std::string& path, SourceLin
   }
   if (const toml::array* a = node.as_array()) {
     nlohmann::json out = nlohmann::json::array();
-    for (const toml::node& e : *a) out.push_back(ToJson(e, path, lines, where));
+    // A table in a list ([[notify]]) is named by its index, so that its keys have their lines.
+    std::size_t i = 0;
+    for (const toml::node& e : *a) {
+      out.push_back(
+          ToJson(e, e.is_table() ? path + "[" + std::to_string(i) + "]" : path, lines, where));
+      ++i;
+    }
     return out;
   }
   if (const auto* v = node.as_integer()) return v->get();
@@ -119,6 +125,18 @@ void ReadDaemon(JsonReader& r, DaemonConfig& c, const std::function<void(JsonRea
     o.Get("checkerboards", c.calibration.checkerboards);
     o.Get("threads", c.calibration.threads);
   });
+  r.Objects("notify", [&](JsonReader& o, std::size_t) {
+    NotifyTarget t;
+    o.Get("url", t.url);
+    o.Get("command", t.command);
+    o.Get("format", t.format);
+    o.Get("events", t.events);
+    o.Get("timeout_s", t.timeout_s);
+    o.Get("retries", t.retries);
+    o.Get("backoff_s", t.backoff_s);
+    o.Get("queue_size", t.queue_size);
+    c.notify.push_back(std::move(t));
+  });
   ReadRunConfig(r, c.run);
   if (read_sim) {
     r.Object("sim", read_sim);
@@ -184,6 +202,13 @@ void DaemonConfig::Check() const {
   log.Check();
   limits.Check();
   calibration.Check();
+  try {
+    CheckNotifyTargets(notify);
+  } catch (const std::invalid_argument& e) {
+    // "notify[1].url must ...": that field, for the file's line.
+    const std::string what = e.what();
+    throw ConfigError(what, what.substr(0, what.find_first_of(" :")));
+  }
   if (!server.token.empty() || IsLoopbackAddress(server.listen)) {
     // fine
   } else {
@@ -266,8 +291,29 @@ std::string DaemonConfigToToml(const DaemonConfig& c) {
                  {"max_feed_mm_per_min", c.limits.max_feed_mm_per_min}};
   j["calibration"] = {{"checkerboards", c.calibration.checkerboards},
                       {"threads", c.calibration.threads}};
+  // Webhook URLs keep their secrets in the path: only the scheme and host are printed.
+  toml::array notify;
+  for (const NotifyTarget& t : c.notify) {
+    toml::table n;
+    if (!t.url.empty()) n.insert("url", t.RedactedUrl());
+    if (!t.command.empty()) {
+      toml::array argv;
+      for (const std::string& a : t.command) argv.push_back(a);
+      n.insert("command", std::move(argv));
+    }
+    n.insert("format", t.format);
+    toml::array events;
+    for (const std::string& e : t.events) events.push_back(e);
+    n.insert("events", std::move(events));
+    n.insert("timeout_s", t.timeout_s);
+    n.insert("retries", t.retries);
+    n.insert("backoff_s", t.backoff_s);
+    n.insert("queue_size", t.queue_size);
+    notify.push_back(std::move(n));
+  }
   toml::table root;
   for (const auto& [k, v] : j.items()) PutToml(root, k, v);
+  if (!notify.empty()) root.insert("notify", std::move(notify));
   std::ostringstream os;
   os << root << "\n";
   return os.str();

@@ -13,7 +13,9 @@
 #include <functional>
 #include <string>
 #include <string_view>
+#include <vector>
 
+#include "daemon/notifier.h"
 #include "daemon/run_config.h"
 #include "daemon/safety.h"
 
@@ -68,6 +70,8 @@ struct DaemonConfig {
   LogConfig log;
   SafetyLimits limits;
   CalibrationDefaults calibration;
+  // [[notify]]: where the run's events are sent (daemon/notifier.h); none by default.
+  std::vector<NotifyTarget> notify;
   // The rig, machine, camera, engine and plan defaults of every run (machine.uri and camera.uri
   // may stay empty: the daemon then serves its data but refuses to start runs). Its plan is
   // sized in machine time (plan.machine_hours = kDefaultMachineHours) unless a count is given.

@@ -291,6 +291,21 @@ void HttpApi::Impl::Routes() {
         });
       },
       Lane::kSlow);
+  server.Route("GET", "/api/v1/notify", [this](const Request&, Response& res) {
+    Guarded(res, [&] { SendJson(res, 200, daemon.NotifyView()); });
+  });
+  server.Route("POST", "/api/v1/notify/test", [this](const Request& req, Response& res) {
+    Guarded(res, [&] {
+      const Json body = ParseBody(req, config.max_body_bytes);
+      JsonReader reader(body, "request");
+      std::int64_t run = 0;
+      reader.Get("run", run);
+      reader.RejectUnknown();
+      const auto sent = daemon.NotifyTest(run);
+      if (!sent) return SendError(res, 404, "not_found", "no run " + std::to_string(run));
+      SendJson(res, 202, *sent);
+    });
+  });
   RunRoutes();
   FileRoutes();
 }

@@ -69,6 +69,11 @@ tsan_tests=(
   # request-time sweeper, and its stop with streams and handlers under way
   '^daemon:api: idle sockets, slow senders and many event streams'
   '^daemon:api: chunked bodies are cut'
+  # the notifiers' threads and queues against receivers that fail, hang or are not there, and a
+  # command's child; the feed from the event hub in a running daemon
+  '^daemon:notify: a receiver that fails'
+  '^daemon:notify: a command gets'
+  '^daemon:notify: a run tells the webhook'
   # storage: status readers on their own connections while the writer commits; the background
   # capture committer beside the run loop's own writes
   '^storage:readers on other connections'
