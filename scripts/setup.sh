@@ -42,9 +42,10 @@ packages=(
 if [ "$mode" = test ]; then
   packages+=(chromium clang-format clang libclang-rt-14-dev)
 fi
-# The package's checks (scripts/check_package.sh): lintian, and dpkg-shlibdeps for its dependencies.
+# The package's checks (scripts/check_package.sh): lintian, dpkg-shlibdeps for its dependencies,
+# systemd-analyze for its unit and man for its pages.
 if [ "$mode" = test ] || [ "$mode" = package ]; then
-  packages+=(lintian dpkg-dev)
+  packages+=(lintian dpkg-dev systemd man-db)
 fi
 
 missing=()
