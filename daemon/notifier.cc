@@ -184,7 +184,14 @@ void NotifyTarget::Check() const {
   if (url.empty() == command.empty()) {
     throw std::invalid_argument("notify: give exactly one of url and command");
   }
-  if (!url.empty()) Split(url);
+  if (!url.empty()) {
+    // A space or control character would end the request line early or start a header.
+    if (std::any_of(url.begin(), url.end(),
+                    [](unsigned char c) { return c <= 0x20 || c == 0x7f; })) {
+      throw std::invalid_argument("notify.url must not contain spaces or control characters");
+    }
+    Split(url);
+  }
   if (!command.empty() && command[0].empty()) {
     throw std::invalid_argument("notify.command: the program's name is empty");
   }

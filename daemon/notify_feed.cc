@@ -107,6 +107,7 @@ NotifyFeed::~NotifyFeed() {
 }
 
 void NotifyFeed::Send(NotifyEvent event, std::int64_t run, const std::string& detail) {
+  if (notifier_.size() == 0) return;  // nobody to tell: no run view to read
   Json view = nullptr;
   std::string line = detail;
   try {

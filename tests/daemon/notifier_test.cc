@@ -97,6 +97,10 @@ TEST_CASE("notify: a [[notify]] table that cannot work is refused naming the fie
   CHECK_THROWS_WITH(t.Check(), Catch::Contains("exactly one of url and command"));
   t.url = "ftp://example.org/x";
   CHECK_THROWS_WITH(t.Check(), Catch::Contains("notify.url must start with http:// or https://"));
+  t.url = "https://ntfy.sh/topic\r\nX-Injected: 1";
+  CHECK_THROWS_WITH(t.Check(), Catch::Contains("must not contain spaces or control characters"));
+  t.url = "https://ntfy.sh/a topic";
+  CHECK_THROWS_WITH(t.Check(), Catch::Contains("must not contain spaces or control characters"));
   t.url = "https://ntfy.sh/secret-topic";
   t.command = {"apprise"};
   CHECK_THROWS_WITH(t.Check(), Catch::Contains("exactly one of url and command"));
