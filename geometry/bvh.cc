@@ -408,7 +408,11 @@ class Bvh::Writer {
   }
 
  private:
-  unsigned char* Word(std::size_t at) { return bvh_.lines_.data()->bytes + 8 * at; }
+  // The storage is addressed as one array of bytes (the lines' object representation), not
+  // through the first line's 64-byte member: an offset past it would leave that array.
+  unsigned char* Word(std::size_t at) {
+    return reinterpret_cast<unsigned char*>(bvh_.lines_.data()) + 8 * at;
+  }
 
   // Appends zero words; returns the first one's offset.
   std::size_t Grow(std::size_t words) {
@@ -759,7 +763,7 @@ Bvh::HitSlot Bvh::Traverse(const Ray& ray, double t_min, double t_max, double* b
   const Eigen::Vector3d& d = ray.direction;
   if (!ray.origin.allFinite() || !d.allFinite() || d.squaredNorm() == 0.0) return HitSlot();
   if (!(t_max >= t_min)) return HitSlot();
-  const unsigned char* const base = lines_.data()->bytes;
+  const unsigned char* const base = reinterpret_cast<const unsigned char*>(lines_.data());
   const RayTests tests(ray, t_min);
   RayTests::Closest closest(t_max);
   RayTests::LeafVertices leaf_vertices;
@@ -793,7 +797,8 @@ std::optional<RayHit> Bvh::Intersect(const Ray& ray, double t_min, double t_max)
   double t = 0.0, b1 = 0.0, b2 = 0.0;
   const HitSlot slot = Traverse<false>(ray, t_min, t_max, &t, &b1, &b2);
   if (slot.leaf < 0) return std::nullopt;
-  const unsigned char* leaf = lines_.data()->bytes + 8 * static_cast<std::size_t>(slot.leaf);
+  const unsigned char* leaf = reinterpret_cast<const unsigned char*>(lines_.data()) +
+                              8 * static_cast<std::size_t>(slot.leaf);
   const int m = leaf[0] + (leaf[0] & 1);
   const int nt = leaf[1];
   const unsigned char* tri = leaf + 8 + 24 * m;

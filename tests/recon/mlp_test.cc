@@ -198,7 +198,11 @@ TEST_CASE("Mlp Forward is column independent across blocks", "[mlp]") {
   REQUIRE(y.cols() == 2500);
   for (int c : {0, 1, 1023, 1024, 1025, 2047, 2048, 2499}) {
     const Eigen::MatrixXf single = mlp.Forward(x.col(c));
-    CHECK((single.col(0) - y.col(c)).cwiseAbs().maxCoeff() < 1e-6f);
+    // A single column goes through Eigen's matrix-vector kernel, a block through its
+    // matrix-matrix one: the sums round in another order (a few float ulps; clang's build
+    // differs by more than 1e-6). A column mixed with another would be off by order one.
+    INFO("column " << c << ": " << (single.col(0) - y.col(c)).cwiseAbs().maxCoeff());
+    CHECK((single.col(0) - y.col(c)).cwiseAbs().maxCoeff() < 1e-5f);
   }
   CHECK(mlp.Forward(Eigen::MatrixXf(5, 0)).cols() == 0);
   CHECK_THROWS_AS(mlp.Forward(Eigen::MatrixXf::Zero(4, 3)), std::invalid_argument);
