@@ -10,6 +10,7 @@
 #include <sstream>
 #include <string_view>
 
+#include "base/base64.h"
 #include "base/format.h"
 
 namespace gs360 {
@@ -241,30 +242,6 @@ std::string Hex(Rgb c) {
   return buf;
 }
 
-std::string Base64(const std::vector<unsigned char>& data) {
-  static constexpr char kAlphabet[] =
-      "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-  std::string out;
-  out.reserve((data.size() + 2) / 3 * 4);
-  std::size_t i = 0;
-  for (; i + 2 < data.size(); i += 3) {
-    const unsigned v = (unsigned{data[i]} << 16) | (unsigned{data[i + 1]} << 8) | data[i + 2];
-    out += kAlphabet[(v >> 18) & 63];
-    out += kAlphabet[(v >> 12) & 63];
-    out += kAlphabet[(v >> 6) & 63];
-    out += kAlphabet[v & 63];
-  }
-  if (i < data.size()) {
-    const bool two = i + 1 < data.size();
-    const unsigned v = (unsigned{data[i]} << 16) | (two ? unsigned{data[i + 1]} << 8 : 0u);
-    out += kAlphabet[(v >> 18) & 63];
-    out += kAlphabet[(v >> 12) & 63];
-    out += two ? kAlphabet[(v >> 6) & 63] : '=';
-    out += '=';
-  }
-  return out;
-}
-
 // An <img> with the image (8-bit, 1 or 3 channels) as a PNG data URI, upscaled with
 // nearest-neighbour to about kExamplePixels; "" when the image cannot be encoded.
 std::string ImgTag(const cv::Mat& image, const std::string& alt) {
@@ -278,7 +255,7 @@ std::string ImgTag(const cv::Mat& image, const std::string& alt) {
   std::vector<unsigned char> png;
   if (!cv::imencode(".png", big, png)) return {};
   return "<img alt=\"" + Escape(alt) + "\" width=\"" + std::to_string(big.cols) + "\" height=\"" +
-         std::to_string(big.rows) + "\" src=\"data:image/png;base64," + Base64(png) + "\">";
+         std::to_string(big.rows) + "\" src=\"data:image/png;base64," + Base64Encode(png) + "\">";
 }
 
 // A CV_32F / CV_64F single-channel map as BGR false colour on [lo, hi]; empty if mistyped.
