@@ -163,6 +163,7 @@ void Daemon::StartNotifications() {
     std::lock_guard lock(mutex_);
     return url_.empty() ? std::string() : url_ + "/";
   };
+  sources.latest_frame = [this](std::int64_t id) { return LatestFramePng(id); };
   notify_feed_ = std::make_unique<NotifyFeed>(hub_, *notifier_, std::move(sources), unclean_runs_);
 }
 

@@ -135,6 +135,7 @@ void ReadDaemon(JsonReader& r, DaemonConfig& c, const std::function<void(JsonRea
     o.Get("retries", t.retries);
     o.Get("backoff_s", t.backoff_s);
     o.Get("queue_size", t.queue_size);
+    o.Get("attach_frame", t.attach_frame);
     c.notify.push_back(std::move(t));
   });
   ReadRunConfig(r, c.run);
@@ -309,6 +310,7 @@ std::string DaemonConfigToToml(const DaemonConfig& c) {
     n.insert("retries", t.retries);
     n.insert("backoff_s", t.backoff_s);
     n.insert("queue_size", t.queue_size);
+    n.insert("attach_frame", t.attach_frame);
     notify.push_back(std::move(n));
   }
   toml::table root;

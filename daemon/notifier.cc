@@ -12,15 +12,20 @@
 #include <array>
 #include <cmath>
 #include <condition_variable>
+#include <cstdlib>
 #include <cstring>
 #include <deque>
+#include <filesystem>
+#include <fstream>
 #include <mutex>
+#include <random>
 #include <stdexcept>
 #include <thread>
 
 #include <httplib.h>
 #include <spdlog/spdlog.h>
 
+#include "base/base64.h"
 #include "base/field_error.h"
 #include "base/format.h"
 
@@ -218,6 +223,11 @@ void NotifyTarget::Check() const {
   if (queue_size < 1 || queue_size > 100000) {
     ThrowFieldError("notify.queue_size", queue_size, "must be in [1, 100000]");
   }
+  if (attach_frame && !url.empty() && format == "slack") {
+    throw std::invalid_argument(
+        "notify.attach_frame: Slack's incoming webhooks take no files (use format \"json\", "
+        "\"ntfy\" or \"discord\", or attach_frame = false)");
+  }
 }
 
 bool NotifyTarget::Wants(NotifyEvent event) const {
@@ -299,7 +309,52 @@ Notification MakeNotification(NotifyEvent event, const Json& run, const std::str
   return n;
 }
 
-WebhookRequest FormatWebhook(const Notification& n, std::string_view format) {
+namespace {
+
+// A header's value on one line: ntfy turns "\n" back into a newline; other control characters
+// become spaces (they would end the header or start another).
+std::string HeaderValue(const std::string& text) {
+  std::string out;
+  for (const char c : text) {
+    if (c == '\n') {
+      out += "\\n";
+    } else if (static_cast<unsigned char>(c) < 0x20 || c == 0x7f) {
+      out += ' ';
+    } else {
+      out += c;
+    }
+  }
+  return out;
+}
+
+// ntfy with the frame: the PNG is the body (an attachment), the text goes in a header.
+WebhookRequest NtfyWithFrame(const Notification& n, WebhookRequest r) {
+  r.headers.emplace_back("Message", HeaderValue(PlainText(n, false)));
+  r.headers.emplace_back("Filename", "gs360-run-" + std::to_string(n.run) + "-frame.png");
+  r.content_type = "image/png";
+  r.body.assign(n.frame_png->begin(), n.frame_png->end());
+  return r;
+}
+
+// Discord with the frame: multipart/form-data, the message in payload_json, the PNG in files[0].
+WebhookRequest DiscordWithFrame(const Notification& n) {
+  std::mt19937_64 rng(std::random_device{}());
+  const std::string boundary = "gs360-" + std::to_string(rng()) + std::to_string(rng());
+  std::string body = "--" + boundary +
+                     "\r\nContent-Disposition: form-data; name=\"payload_json\"\r\n"
+                     "Content-Type: application/json\r\n\r\n" +
+                     Json{{"content", PlainText(n, true)}}.dump() + "\r\n--" + boundary +
+                     "\r\nContent-Disposition: form-data; name=\"files[0]\"; "
+                     "filename=\"frame.png\"\r\nContent-Type: image/png\r\n\r\n";
+  body.append(n.frame_png->begin(), n.frame_png->end());
+  body += "\r\n--" + boundary + "--\r\n";
+  return {"multipart/form-data; boundary=" + boundary, std::move(body), {}};
+}
+
+}  // namespace
+
+WebhookRequest FormatWebhook(const Notification& n, std::string_view format, bool attach_frame) {
+  const bool frame = attach_frame && n.frame_png && !n.frame_png->empty();
   if (format == "ntfy") {
     // ntfy reads its title, priority and tags from headers; the body is the message.
     WebhookRequest r{"text/plain; charset=utf-8", PlainText(n, false), {}};
@@ -307,13 +362,16 @@ WebhookRequest FormatWebhook(const Notification& n, std::string_view format) {
                  {"Priority", Urgent(n.event) ? "high" : "default"},
                  {"Tags", std::string(ToString(n.event))}};
     if (!n.dashboard_url.empty()) r.headers.emplace_back("Click", n.dashboard_url);
-    return r;
+    return frame ? NtfyWithFrame(n, std::move(r)) : r;
   }
   if (format == "slack") return {"application/json", Json{{"text", PlainText(n, true)}}.dump(), {}};
   if (format == "discord") {
+    if (frame) return DiscordWithFrame(n);
     return {"application/json", Json{{"content", PlainText(n, true)}}.dump(), {}};
   }
-  return {"application/json", n.ToJson().dump(), {}};
+  Json body = n.ToJson();
+  if (frame) body["frame_png_base64"] = Base64Encode(*n.frame_png);
+  return {"application/json", body.dump(), {}};
 }
 
 namespace {
@@ -321,7 +379,7 @@ namespace {
 // One attempt at a webhook: empty on a 2xx answer, else what went wrong (never the URL's path).
 std::string PostWebhook(const NotifyTarget& t, const Notification& n) {
   const SplitUrl url = Split(t.url);
-  const WebhookRequest req = FormatWebhook(n, t.format);
+  const WebhookRequest req = FormatWebhook(n, t.format, t.attach_frame);
   httplib::Client client(url.origin);
   const auto timeout = std::chrono::duration<double>(t.timeout_s);
   const auto sec = static_cast<time_t>(timeout.count());
@@ -338,8 +396,41 @@ std::string PostWebhook(const NotifyTarget& t, const Notification& n) {
   return "";
 }
 
+// A command's copy of the frame: a file of its own (mode 0600) in the temp folder, removed when
+// the attempt ends.
+class FrameFile {
+ public:
+  explicit FrameFile(const Notification& n) {
+    if (!n.frame_png || n.frame_png->empty()) return;
+    std::string pattern =
+        (std::filesystem::temp_directory_path() / "gs360-frame-XXXXXX.png").string();
+    const int fd = ::mkstemps(pattern.data(), 4);
+    if (fd < 0) throw std::runtime_error("cannot create a file for the frame in " + pattern);
+    path_ = pattern;
+    const std::uint8_t* p = n.frame_png->data();
+    std::size_t left = n.frame_png->size();
+    while (left > 0) {
+      const ssize_t w = ::write(fd, p, left);
+      if (w <= 0) break;
+      p += w;
+      left -= static_cast<std::size_t>(w);
+    }
+    ::close(fd);
+    if (left > 0) throw std::runtime_error("cannot write the frame to " + path_);
+  }
+  ~FrameFile() {
+    if (!path_.empty()) ::unlink(path_.c_str());
+  }
+  FrameFile(const FrameFile&) = delete;
+  FrameFile& operator=(const FrameFile&) = delete;
+  const std::string& path() const { return path_; }
+
+ private:
+  std::string path_;
+};
+
 // The child's environment: gs360d's, with the notification's fields as GS360_*.
-std::vector<std::string> CommandEnvironment(const Notification& n) {
+std::vector<std::string> CommandEnvironment(const Notification& n, const std::string& frame) {
   std::vector<std::string> env;
   for (char** e = environ; e != nullptr && *e != nullptr; ++e) {
     if (std::string_view(*e).rfind("GS360_", 0) != 0) env.emplace_back(*e);
@@ -351,6 +442,7 @@ std::vector<std::string> CommandEnvironment(const Notification& n) {
   env.push_back("GS360_MESSAGE=" + n.message);
   env.push_back("GS360_ACTION=" + n.action);
   env.push_back("GS360_DASHBOARD=" + n.dashboard_url);
+  if (!frame.empty()) env.push_back("GS360_FRAME=" + frame);
   return env;
 }
 
@@ -406,6 +498,9 @@ std::string WaitForChild(pid_t pid, int fd, const std::string& data, Clock::time
 // One attempt at a command: the notification as JSON on stdin and in GS360_* variables; stdout
 // and stderr are read (the last line names a failure). Empty on exit code 0.
 std::string RunCommand(const NotifyTarget& t, const Notification& n) {
+  const FrameFile frame(n);
+  Json stdin_json = n.ToJson();
+  if (!frame.path().empty()) stdin_json["frame_path"] = frame.path();
   int fds[2];
   if (::socketpair(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0, fds) != 0) return "socketpair failed";
   posix_spawn_file_actions_t actions;
@@ -421,7 +516,7 @@ std::string RunCommand(const NotifyTarget& t, const Notification& n) {
   posix_spawnattr_setsigmask(&attr, &none);
   posix_spawnattr_setflags(&attr, POSIX_SPAWN_SETSIGMASK);
   std::vector<std::string> argv_s = t.command;
-  std::vector<std::string> env_s = CommandEnvironment(n);
+  std::vector<std::string> env_s = CommandEnvironment(n, frame.path());
   std::vector<char*> argv = Pointers(argv_s);
   std::vector<char*> envp = Pointers(env_s);
   pid_t pid = 0;
@@ -435,7 +530,7 @@ std::string RunCommand(const NotifyTarget& t, const Notification& n) {
   }
   const auto deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(
                                            std::chrono::duration<double>(t.timeout_s));
-  std::string result = WaitForChild(pid, fds[0], n.ToJson().dump() + "\n", deadline);
+  std::string result = WaitForChild(pid, fds[0], stdin_json.dump() + "\n", deadline);
   ::close(fds[0]);
   return result;
 }
@@ -472,6 +567,8 @@ class Notifier::Worker {
         return;
       }
       queue_.push_back(n);
+      // Only a target that attaches frames keeps one (memory, and no PNG in its queue).
+      if (!target_.attach_frame) queue_.back().frame_png.reset();
       ++queued_;
     }
     wake_.notify_all();
@@ -491,6 +588,7 @@ class Notifier::Worker {
     return {{"target", target_.Describe()},
             {"kind", target_.url.empty() ? "command" : "webhook"},
             {"format", target_.url.empty() ? "json" : target_.format},
+            {"attach_frame", target_.attach_frame},
             {"events", target_.events.empty() ? Json("all") : events},
             {"queued", queued_},
             {"delivered", delivered_},
@@ -581,6 +679,12 @@ void Notifier::Send(const Notification& n) {
   for (const auto& w : workers_) {
     if (w->target().Wants(n.event)) w->Send(n);
   }
+}
+
+bool Notifier::WantsFrame(NotifyEvent event) const {
+  return std::any_of(workers_.begin(), workers_.end(), [&](const auto& w) {
+    return w->target().attach_frame && w->target().Wants(event);
+  });
 }
 
 Json Notifier::View() const {

@@ -56,6 +56,11 @@ struct NotifyTarget {
   int retries = 3;                  // further attempts after a failed one
   double backoff_s = 2.0;           // before the first retry; doubles each time
   int queue_size = 64;              // notifications waiting; more are dropped
+  // The run's latest camera frame (PNG) with each notification about a run: "frame_png_base64" in
+  // the JSON body, an attachment for ntfy (the text then in a Message header) and Discord
+  // (multipart), a file for a command (GS360_FRAME, "frame_path"; removed after the command).
+  // Not with format "slack": its incoming webhooks take no files.
+  bool attach_frame = false;
   // Throws std::invalid_argument naming the field ("notify.url ...") and the value.
   void Check() const;
   bool Wants(NotifyEvent event) const;
@@ -81,6 +86,9 @@ struct Notification {
   nlohmann::json progress = nullptr;  // probes_done, probes_total, probes_failed, eta_s
   std::string last_error;
   double time = 0.0;  // Unix seconds
+  // The run's latest frame as PNG, for the targets with attach_frame (null: none). Shared: one
+  // encoding for every target; ToJson() leaves it out.
+  std::shared_ptr<const std::vector<std::uint8_t>> frame_png;
   nlohmann::json ToJson() const;
 };
 
@@ -96,7 +104,9 @@ struct WebhookRequest {
   std::string body;
   std::vector<std::pair<std::string, std::string>> headers;
 };
-WebhookRequest FormatWebhook(const Notification& n, std::string_view format);
+// With `attach_frame` and a frame in `n`, the frame goes with it (NotifyTarget::attach_frame).
+WebhookRequest FormatWebhook(const Notification& n, std::string_view format,
+                             bool attach_frame = false);
 
 class Notifier {
  public:
@@ -109,8 +119,11 @@ class Notifier {
   Notifier(const Notifier&) = delete;
   Notifier& operator=(const Notifier&) = delete;
 
-  // Queues `n` for every target that wants its event. Never blocks.
+  // Queues `n` for every target that wants its event (with its frame only for those that
+  // attach one). Never blocks.
   void Send(const Notification& n);
+  // Whether a target that wants `event` attaches the frame: only then is one encoded.
+  bool WantsFrame(NotifyEvent event) const;
   // The targets (described, with their events and counts: queued, delivered, failed, dropped)
   // and the last deliveries and failures, newest first.
   nlohmann::json View() const;

@@ -122,8 +122,24 @@ void NotifyFeed::Send(NotifyEvent event, std::int64_t run, const std::string& de
     spdlog::debug("notify: run {}: {}", run, e.what());
   }
   if (view.is_null() && run != 0) view = Json{{"id", run}};
-  notifier_.Send(
-      MakeNotification(event, view, line, sources_.dashboard_url ? sources_.dashboard_url() : ""));
+  Notification n =
+      MakeNotification(event, view, line, sources_.dashboard_url ? sources_.dashboard_url() : "");
+  n.frame_png = Frame(event, run);
+  notifier_.Send(n);
+}
+
+std::shared_ptr<const std::vector<std::uint8_t>> NotifyFeed::Frame(NotifyEvent event,
+                                                                   std::int64_t run) const {
+  if (run == 0 || !sources_.latest_frame || !notifier_.WantsFrame(event)) return nullptr;
+  try {
+    if (auto png = sources_.latest_frame(run)) {
+      return std::make_shared<const std::vector<std::uint8_t>>(std::move(*png));
+    }
+  } catch (const std::exception& e) {
+    // A frame that cannot be read leaves the notification without one, nothing more.
+    spdlog::debug("notify: run {}: no frame: {}", run, e.what());
+  }
+  return nullptr;
 }
 
 void NotifyFeed::Loop(std::int64_t after, std::vector<std::int64_t> unclean_runs) {

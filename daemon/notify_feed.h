@@ -11,6 +11,7 @@
 #include <chrono>
 #include <cstdint>
 #include <functional>
+#include <memory>
 #include <optional>
 #include <set>
 #include <string>
@@ -44,6 +45,8 @@ class NotifyFeed {
     std::function<std::optional<nlohmann::json>(std::int64_t)> run;          // the run's view
     std::function<std::optional<nlohmann::json>(std::int64_t)> calibration;  // its calibration
     std::function<std::string()> dashboard_url;                              // "" until known
+    // The run's latest frame as PNG (null: none yet); asked only when a target attaches frames.
+    std::function<std::optional<std::vector<std::uint8_t>>(std::int64_t)> latest_frame;
   };
   // Starts reading `hub` from its current end. `unclean_runs`: runs a previous daemon left
   // running, each sent as kUncleanStart first.
@@ -62,6 +65,8 @@ class NotifyFeed {
 
  private:
   void Loop(std::int64_t after, std::vector<std::int64_t> unclean_runs);
+  // The run's latest frame, when a target wants one with `event`.
+  std::shared_ptr<const std::vector<std::uint8_t>> Frame(NotifyEvent event, std::int64_t run) const;
 
   EventHub& hub_;
   Notifier& notifier_;

@@ -17,6 +17,7 @@
 #include <httplib.h>
 #include <nlohmann/json.hpp>
 
+#include "base/base64.h"
 #include "daemon/notifier.h"
 #include "tests/daemon/webhook_receiver.h"
 #include "tests/wait.h"
@@ -162,6 +163,65 @@ TEST_CASE("notify: only the events a target asks for reach it, and ntfy gets its
   CHECK(rx.Body(0).rfind("ALARM:1", 0) == 0);
 }
 
+namespace {
+
+// Bytes that stand for a frame's PNG: the notifier passes them on as they are.
+std::shared_ptr<const std::vector<std::uint8_t>> FramePng() {
+  std::vector<std::uint8_t> png = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n', 0, 0xff};
+  for (int i = 0; i < 3000; ++i) png.push_back(static_cast<std::uint8_t>(i * 7));
+  return std::make_shared<const std::vector<std::uint8_t>>(std::move(png));
+}
+
+}  // namespace
+
+TEST_CASE(
+    "notify: attach_frame sends the frame: base64 in JSON, an ntfy attachment, a Discord file",
+    "[daemon][notify]") {
+  test::Receiver rx;
+  NotifyTarget json = Webhook(rx.Url("/json"));
+  json.attach_frame = true;
+  NotifyTarget ntfy = Webhook(rx.Url("/ntfy"));
+  ntfy.format = "ntfy";
+  ntfy.attach_frame = true;
+  NotifyTarget discord = Webhook(rx.Url("/discord"));
+  discord.format = "discord";
+  discord.attach_frame = true;
+  const NotifyTarget plain = Webhook(rx.Url("/plain"));
+  NotifyTarget slack = Webhook(rx.Url("/slack"));
+  slack.format = "slack";
+  slack.attach_frame = true;
+  CHECK_THROWS_WITH(slack.Check(), Catch::Contains("notify.attach_frame: Slack"));
+
+  Notification n = MakeNotification(NotifyEvent::kAlarm, RunView(), "ALARM:1", "http://h/");
+  n.frame_png = FramePng();
+  const std::string png(n.frame_png->begin(), n.frame_png->end());
+  // One target at a time: the receiver's order is then the targets'.
+  for (const NotifyTarget& t : {json, ntfy, discord, plain}) {
+    Notifier notifier({t});
+    CHECK(notifier.WantsFrame(NotifyEvent::kAlarm) == t.attach_frame);
+    notifier.Send(n);
+    REQUIRE(notifier.WaitIdle(test::Scaled(10s)));
+  }
+  REQUIRE(rx.Count() == 4);
+  CHECK(Json::parse(rx.Body(0))["frame_png_base64"] == Base64Encode(*n.frame_png));
+  CHECK(Json::parse(rx.Body(0))["event"] == "alarm");
+
+  CHECK(rx.Header(1, "Content-Type") == "image/png");
+  CHECK(rx.Body(1) == png);
+  CHECK(rx.Title(1) == "gs360 run 3 (finger-07): machine alarm");
+  CHECK(rx.Header(1, "Filename") == "gs360-run-3-frame.png");
+  const std::string message = rx.Header(1, "Message");
+  CHECK(message.rfind("ALARM:1\\n812 of 2011 probes", 0) == 0);
+  CHECK(message.find('\n') == std::string::npos);
+
+  CHECK_THAT(rx.Header(2, "Content-Type"), Catch::StartsWith("multipart/form-data; boundary="));
+  CHECK(rx.Part(2, "files[0]") == png);
+  CHECK_THAT(Json::parse(rx.Part(2, "payload_json"))["content"].get<std::string>(),
+             Catch::StartsWith("gs360 run 3 (finger-07): machine alarm\nALARM:1"));
+
+  CHECK_FALSE(Json::parse(rx.Body(3)).contains("frame_png_base64"));
+}
+
 TEST_CASE("notify: a receiver that fails, hangs or is not there costs retries, then a count",
           "[daemon][notify]") {
   std::ostringstream log;
@@ -251,6 +311,30 @@ TEST_CASE("notify: a command gets the notification as JSON on stdin and in GS360
   CHECK(Json::parse(json_line)["event"] == "awaiting_confirmation");
   CHECK(env_line == "awaiting_confirmation 3 gs360 run resume 3 --confirm position");
 
+  SECTION("with attach_frame, a file of the frame for the command, removed after it") {
+    t.attach_frame = true;
+    t.command = {"sh", "-c",
+                 "cat > '" + out + "'; cp \"$GS360_FRAME\" '" + out +
+                     ".png'; echo \"$GS360_FRAME\" >> '" + out + "'"};
+    Notification n = MakeNotification(NotifyEvent::kDone, RunView(), "", "");
+    n.frame_png = FramePng();
+    {
+      Notifier notifier({t});
+      notifier.Send(n);
+      REQUIRE(notifier.WaitIdle(test::Scaled(20s)));
+      CHECK(Target(notifier, 0)["delivered"] == 1);
+    }
+    std::ifstream result(out);
+    std::string stdin_line, path_line;
+    std::getline(result, stdin_line);
+    std::getline(result, path_line);
+    CHECK(Json::parse(stdin_line)["frame_path"] == path_line);
+    CHECK_FALSE(path_line.empty());
+    CHECK_FALSE(std::filesystem::exists(path_line));
+    std::ifstream copy(out + ".png", std::ios::binary);
+    const std::string copied((std::istreambuf_iterator<char>(copy)), {});
+    CHECK(copied == std::string(n.frame_png->begin(), n.frame_png->end()));
+  }
   SECTION("a failing command: its exit code and last line") {
     t.command = {"sh", "-c", "echo first; echo 'no route to host' >&2; exit 3"};
     Notifier notifier({t});

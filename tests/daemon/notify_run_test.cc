@@ -10,6 +10,7 @@
 #include <nlohmann/json.hpp>
 
 #include "api_helpers.h"
+#include "base/base64.h"
 #include "daemon_fixture.h"
 #include "storage/run_database.h"
 #include "tests/daemon/webhook_receiver.h"
@@ -40,7 +41,8 @@ TEST_CASE("notify: a run tells the webhook it was created, started, paused, resu
           "[daemon][notify]") {
   test::Receiver rx;
   test::RigFixture f("notify-run", 30, 0.0);
-  test::InProcessDaemon d(test::ConfigFor(f, NotifyToml(rx, "/hook/secret-abc")));
+  test::InProcessDaemon d(
+      test::ConfigFor(f, NotifyToml(rx, "/hook/secret-abc", "attach_frame = true\n")));
   httplib::Client c = d.Client();
   REQUIRE(PostJson(c, "/api/v1/runs", {{"probes", 30}, {"name", "finger-07"}})->status == 201);
   REQUIRE(PostJson(c, "/api/v1/runs/1/start", Json::object())->status == 202);
@@ -61,6 +63,13 @@ TEST_CASE("notify: a run tells the webhook it was created, started, paused, resu
   CHECK(done["action"] == "gs360 calibrate 1");
   CHECK(done["dashboard_url"] == d.url + "/#run=1");
   CHECK(rx.Path(0) == "/hook/secret-abc");
+  // attach_frame: the run's last frame, as the API serves it; none before the first capture.
+  CHECK_FALSE(Json::parse(rx.Body(0)).contains("frame_png_base64"));
+  const auto latest = c.Get("/api/v1/runs/1/frames/latest.png");
+  REQUIRE(latest);
+  REQUIRE(latest->status == 200);
+  const std::vector<std::uint8_t> png(latest->body.begin(), latest->body.end());
+  CHECK(done["frame_png_base64"] == Base64Encode(png));
 
   // The API names the receiver without its secret path, with its counts.
   const Json view = Body(c.Get("/api/v1/notify"));

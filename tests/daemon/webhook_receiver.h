@@ -3,6 +3,7 @@
 
 #include <atomic>
 #include <chrono>
+#include <map>
 #include <mutex>
 #include <string>
 #include <thread>
@@ -24,6 +25,10 @@ class Receiver {
         bodies_.push_back(req.body);
         paths_.push_back(req.path);
         titles_.push_back(req.get_header_value("Title"));
+        headers_.push_back(req.headers);
+        std::map<std::string, std::string> parts;
+        for (const auto& [name, file] : req.files) parts[name] = file.content;
+        parts_.push_back(std::move(parts));
       }
       if (delay_ms > 0) std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms.load()));
       res.status = status.load();
@@ -66,6 +71,20 @@ class Receiver {
     std::lock_guard lock(mutex_);
     return titles_.at(i);
   }
+  // Request i's header `name` ("" if it had none).
+  std::string Header(std::size_t i, const std::string& name) const {
+    std::lock_guard lock(mutex_);
+    const auto& h = headers_.at(i);
+    const auto it = h.find(name);
+    return it == h.end() ? std::string() : it->second;
+  }
+  // The part `name` of request i's multipart/form-data body ("" if none).
+  std::string Part(std::size_t i, const std::string& name) const {
+    std::lock_guard lock(mutex_);
+    const auto& p = parts_.at(i);
+    const auto it = p.find(name);
+    return it == p.end() ? std::string() : it->second;
+  }
   std::atomic<int> status{200};
   std::atomic<int> delay_ms{0};
 
@@ -75,6 +94,8 @@ class Receiver {
   std::thread thread_;
   mutable std::mutex mutex_;
   std::vector<std::string> bodies_, paths_, titles_;
+  std::vector<httplib::Headers> headers_;
+  std::vector<std::map<std::string, std::string>> parts_;
 };
 
 }  // namespace gs360::test
