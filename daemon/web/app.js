@@ -292,7 +292,112 @@
       }
     }
     if (fresh) run._issued = issued;
+    if (fresh && 'state' in r) noteState(r.id, run.state);
     return run;
+  }
+
+  // ---- browser notifications -------------------------------------------------------------------
+  // On request (the header's "notify" chip) the page raises a system notification when a run it
+  // saw running ends (done, failed, cancelled, interrupted) and when the machine raises an alarm:
+  // a tab left open in the background then tells its user. The choice is kept by the browser.
+  const NOTIFY_KEY = 'gs360d.notify';
+  const ENDED = new Set(['done', 'failed', 'cancelled', 'interrupted']);
+  const notify = { active: new Set(), alarmed: new Map() }; // ids seen active; id -> time of alarm
+  const ALARM_WAIT_MS = 3000;
+
+  function notifySupported() {
+    return typeof Notification === 'function';
+  }
+
+  function notifyOn() {
+    return notifySupported() && Notification.permission === 'granted' &&
+      localStorage.getItem(NOTIFY_KEY) === '1';
+  }
+
+  function renderNotifyToggle() {
+    const button = $('notify-toggle');
+    let text = 'off';
+    let title = 'Notify me when a run ends or the machine raises an alarm';
+    if (!notifySupported() || !window.isSecureContext) {
+      text = 'n/a';
+      title = notifySupported()
+        ? 'Browsers notify only from https:// pages or http://127.0.0.1 (an SSH tunnel does)'
+        : 'This browser has no notifications';
+      button.disabled = true;
+    } else if (Notification.permission === 'denied') {
+      text = 'blocked';
+      title = 'Notifications are blocked for this site: allow them in the browser\'s settings';
+    } else if (notifyOn()) {
+      text = 'on';
+      title = 'Notifications on (a run ends, an alarm): click to turn them off';
+    }
+    setText('notify-state', text);
+    button.title = title;
+    button.dataset.state = text;
+    button.setAttribute('aria-pressed', String(text === 'on'));
+  }
+
+  $('notify-toggle').addEventListener('click', async () => {
+    if (notifyOn()) {
+      localStorage.setItem(NOTIFY_KEY, '0');
+    } else {
+      let permission = Notification.permission;
+      if (permission === 'default') permission = await Notification.requestPermission();
+      localStorage.setItem(NOTIFY_KEY, permission === 'granted' ? '1' : '0');
+    }
+    renderNotifyToggle();
+  });
+
+  function runLabel(id) {
+    const r = state.runs.get(id);
+    return r && r.name ? `gs360 run ${id} (${r.name})` : `gs360 run ${id}`;
+  }
+
+  function raise(id, what, body) {
+    if (!notifyOn()) return;
+    try {
+      const n = new Notification(`${runLabel(id)}: ${what}`,
+        { body, tag: `gs360-run-${id}`, icon: '/icon.svg' });
+      n.onclick = () => {
+        window.focus();
+        if (id !== null) select(id);
+        n.close();
+      };
+    } catch (e) {
+      // Some browsers (Chrome on Android) let only a service worker notify: nothing to do.
+    }
+  }
+
+  // Called with every state the page learns of, from the list, a run's view or an event: the end
+  // of a run seen active is told once; an interruption that follows an alarm is not told again.
+  function noteState(id, s) {
+    if (ACTIVE.has(s)) {
+      notify.active.add(id);
+      notify.alarmed.delete(id);
+      return;
+    }
+    if (!ENDED.has(s) || !notify.active.delete(id)) return;
+    const tell = () => {
+      if (s === 'interrupted' && notify.alarmed.has(id)) return;
+      const r = state.runs.get(id) || {};
+      const parts = [];
+      if (r.probes_total) parts.push(`${fmtInt(r.probes_done || 0)} of ${fmtInt(r.probes_total)} probes`);
+      if (s !== 'done' && r.last_error) parts.push(r.last_error);
+      raise(id, s, parts.join('\n'));
+    };
+    // The alarm that caused an interruption may reach the page just after it: wait for it.
+    if (s === 'interrupted') setTimeout(tell, ALARM_WAIT_MS);
+    else tell();
+  }
+
+  function onAlarm(d) {
+    onLog(d);
+    if (d.run === null || d.run === undefined) return;
+    // One incident is logged in a few lines that each name the alarm.
+    const last = notify.alarmed.get(d.run);
+    if (last !== undefined && Date.now() - last < 30000) return;
+    notify.alarmed.set(d.run, Date.now());
+    raise(d.run, 'machine alarm', d.message || '');
   }
 
   function refreshRuns() {
@@ -1250,6 +1355,7 @@
         autoSelect();
       }
     } else {
+      noteState(d.run, d.state);
       const r = state.runs.get(d.run);
       if (r) {
         r.state = d.state;
@@ -1366,7 +1472,8 @@
     es.addEventListener('convergence', parse((d) => {
       if (state.selected === d.run) refreshRun();
     }));
-    for (const type of ['alarm', 'failure', 'warning', 'log']) {
+    es.addEventListener('alarm', parse(onAlarm));
+    for (const type of ['failure', 'warning', 'log']) {
       es.addEventListener(type, parse(onLog));
     }
   }
@@ -1401,6 +1508,7 @@
   // ---- start -------------------------------------------------------------------------------------
 
   drawErrorScale();
+  renderNotifyToggle();
   setLive('off');
   const initial = hashRun();
   refreshInfo();

@@ -14,7 +14,10 @@
 #      (#calibration-warnings: the targets missed, run more probes);
 #   6. gs360d stopped with SIGTERM: it exits 0;
 #   7. gs360d again, with `home = false`: a new run asks to confirm its position before it
-#      moves; the page says so and its start button (live_check.py --confirm) answers it.
+#      moves; the page says so and its start button (live_check.py --confirm) answers it;
+#   8. browser notifications (live_check.py --notify): a page that was let notify raises one when
+#      a short run it saw start ends (after step 5, the paused run cancelled), and one when the
+#      machine raises an alarm (after step 7, a rig that raises one every few presses).
 # The dumps and screenshots open /#run=ID&live=poll: Chromium's --virtual-time-budget waits for
 # the network to be idle, which an open event stream never is, so that page polls the API instead.
 # Takes some 20 s.
@@ -205,10 +208,12 @@ daemon_ready() {
 }
 daemon_ready_or_gone() { daemon_ready || ! alive "$1"; }
 
+RIG_ARGS=() # more arguments of gs360 sim-rig
 start_rig_and_daemon() { # sets RIG_PID, DAEMON_PID and URL; returns 1 if gs360d exits at once
   local pid
   rm -rf "$TMP/data" "$TMP/cam.sock"
-  "$GS360" sim-rig --time-scale 20 --socket "$TMP/cam.sock" > "$TMP/rig.out" 2> "$TMP/rig.err" &
+  "$GS360" sim-rig --time-scale 20 --socket "$TMP/cam.sock" ${RIG_ARGS[@]+"${RIG_ARGS[@]}"} \
+    > "$TMP/rig.out" 2> "$TMP/rig.err" &
   RIG_PID=$!
   PIDS+=("$RIG_PID")
   wait_until 30 "the rig to print its pty and camera URI" rig_ready
@@ -240,10 +245,25 @@ start_rig_and_daemon() { # sets RIG_PID, DAEMON_PID and URL; returns 1 if gs360d
   log "gs360d (pid $DAEMON_PID) at $URL"
 }
 
-for attempt in 1 2 3; do
-  if start_rig_and_daemon; then break; fi
-  [ "$attempt" -lt 3 ] || fail "gs360d did not start (3 attempts)"
-done
+start_with_retries() {
+  local attempt
+  for attempt in 1 2 3; do
+    if start_rig_and_daemon; then return 0; fi
+  done
+  fail "gs360d did not start (3 attempts)"
+}
+start_with_retries
+
+notify_check() { # notify_check EXPECT: a page of run $RUN, let notify, starts it and is told EXPECT
+  local profile
+  profile=$(mktemp -d "$TMP/profile.XXXXXX")
+  browser 150 "$TMP/notify_check.out" python3 "$HERE/live_check.py" --notify \
+    "$URL/api/v1/runs/$RUN/start" "$1" "$CHROMIUM" "$URL/#run=$RUN" "$profile" "$TMP/chromium.err"
+  sed 's/^/    /' "$TMP/notify_check.out"
+  [ "$RC" -ne 124 ] || fail "the notification check did not finish within 150 s"
+  [ "$RC" -eq 0 ] || fail "the page did not notify '$1' (status $RC)"
+  log "the page notified '$1' for run $RUN"
+}
 
 # ---- a live run --------------------------------------------------------------------------------------
 
@@ -394,6 +414,20 @@ log "dump 4: #calibration-warnings: $(printf '%s' "$ADVICE" | head -c 200)"
 [[ $ADVICE == *'data-code="few_probes"'*'Run more probes'* ]] ||
   fail "the dashboard does not show the calibration's advice to run more probes"
 
+# ---- a browser notification when a run ends ---------------------------------------------------------------
+
+if command -v python3 > /dev/null; then
+  api_post "runs/$RUN/cancel" '{}' 202 > /dev/null
+  cancelled() { run_view && [ "$(run_state)" = cancelled ]; }
+  wait_until 60 "run $RUN to be cancelled" cancelled
+  api_post runs '{"name":"notify-done","probes":12}' 201 > "$TMP/created.json"
+  RUN=$(json_num id < "$TMP/created.json")
+  is_int "$RUN" || fail "no run id in $(cat "$TMP/created.json")"
+  notify_check ': done'
+else
+  log "SKIPPED the browser notifications: python3 is not installed"
+fi
+
 # ---- stop ---------------------------------------------------------------------------------------------------
 
 rc=0
@@ -434,4 +468,21 @@ rc=0
 stop "$DAEMON_PID" || rc=$?
 DAEMON_PID=
 [ "$rc" -eq 0 ] || fail "gs360d (home = false) exited with status $rc after SIGTERM"
+
+# ---- a browser notification when the machine raises an alarm ---------------------------------------
+
+if command -v python3 > /dev/null; then
+  stop "$RIG_PID" || true
+  RIG_PID=
+  RIG_ARGS=(--faults alarm --fault-every 3)
+  start_with_retries
+  api_post runs '{"name":"notify-alarm","probes":40}' 201 > "$TMP/created.json"
+  RUN=$(json_num id < "$TMP/created.json")
+  is_int "$RUN" || fail "no run id in $(cat "$TMP/created.json")"
+  notify_check ': machine alarm'
+  rc=0
+  stop "$DAEMON_PID" || rc=$?
+  DAEMON_PID=
+  [ "$rc" -eq 0 ] || fail "gs360d (the alarm rig) exited with status $rc after SIGTERM"
+fi
 log "PASS in $((SECONDS - START)) s"

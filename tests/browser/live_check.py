@@ -4,6 +4,7 @@ DevTools protocol on a pipe (--remote-debugging-pipe: no port, no extra package)
 
   live_check.py CHROMIUM PAGE_URL PROFILE_DIR CHROMIUM_LOG
   live_check.py --confirm CHROMIUM PAGE_URL PROFILE_DIR CHROMIUM_LOG
+  live_check.py --notify START_URL EXPECT CHROMIUM PAGE_URL PROFILE_DIR CHROMIUM_LOG
 
 1. Opens PAGE_URL (the dashboard with a running run selected, streaming: no live=poll) at
    1280x900 and waits for the header to say "live" (the EventSource is open) and for
@@ -20,6 +21,12 @@ With --confirm, PAGE_URL shows a run that waits for the user to confirm its posi
 must say so, its start button must offer to confirm; the check clicks it, answers the dialog with
 yes, and waits for the run to leave `created` (the daemon took the confirmation).
 
+With --notify, PAGE_URL shows a run not yet started: the check lets the page notify (the
+permission granted as a user would, through the DevTools protocol), turns its "notify" chip on,
+reloads (the choice is kept), POSTs START_URL, and waits for the page to raise a system
+notification whose title contains EXPECT, and no other (the page's Notification constructor is wrapped
+to record what it is given).
+
 Prints what it compares. Exit status 0: passed; 1: a check failed; 2: Chromium or the protocol
 failed. Python standard library only.
 """
@@ -29,6 +36,8 @@ import select
 import subprocess
 import sys
 import time
+import urllib.parse
+import urllib.request
 
 
 class ProtocolError(Exception):
@@ -93,7 +102,7 @@ class Chromium:
             if 'method' in answer:
                 self.events.append(answer)
 
-    def open(self, url, width, height):
+    def open(self, url, width, height, init_script=None):
         target = self.send('Target.createTarget', {'url': 'about:blank'}, session=False)
         self.session = self.send('Target.attachToTarget',
                                  {'targetId': target['targetId'], 'flatten': True},
@@ -101,6 +110,9 @@ class Chromium:
         self.viewport(width, height, mobile=False)
         self.send('Runtime.enable')
         self.send('Log.enable')
+        if init_script:
+            self.send('Page.enable')
+            self.send('Page.addScriptToEvaluateOnNewDocument', {'source': init_script})
         self.send('Page.navigate', {'url': url})
 
     def problems(self):
@@ -227,9 +239,78 @@ def confirm_check(chrome, url):
     return 1
 
 
+# Runs before the page's own script: the real Notification, wrapped to record each one made.
+RECORDER = (
+    '(() => { const Real = window.Notification; if (typeof Real !== "function") return; '
+    'window.__notes = []; '
+    'class Recorded extends Real { '
+    'constructor(title, options) { super(title, options); '
+    'window.__notes.push({title, body: (options || {}).body || ""}); } '
+    'static get permission() { return Real.permission; } '
+    'static requestPermission(...a) { return Real.requestPermission(...a); } } '
+    'window.Notification = Recorded; })()')
+
+# Set by the page's script (the HTML's own text says "off" before it runs).
+NOTIFY_STATE = ('(() => { const e = document.getElementById("notify-toggle"); '
+                'return e ? e.dataset.state || null : null; })()')
+
+
+def wait_value(chrome, what, expression, test, timeout):
+    deadline = time.monotonic() + timeout
+    seen = None
+    while time.monotonic() < deadline:
+        seen = chrome.eval(expression)
+        if test(seen):
+            return seen
+        time.sleep(0.25)
+    log(f'FAIL: timed out after {timeout} s waiting for {what}; the page shows {seen}')
+    return None
+
+
+def notify_check(chrome, url, start_url, expect):
+    parts = urllib.parse.urlsplit(url)
+    chrome.send('Browser.grantPermissions',
+                {'permissions': ['notifications'],
+                 'origin': f'{parts.scheme}://{parts.netloc}'}, session=False)
+    chrome.open(url, 1280, 900, init_script=RECORDER)
+    if wait_value(chrome, 'the "notify" chip', NOTIFY_STATE, lambda v: v == 'off', 30) is None:
+        return 1
+    chrome.eval('document.getElementById("notify-toggle").click()')
+    if wait_value(chrome, 'notifications on', NOTIFY_STATE, lambda v: v == 'on', 10) is None:
+        return 1
+    chrome.send('Page.reload')
+    time.sleep(1.0)
+    if wait_value(chrome, 'notifications still on after a reload', NOTIFY_STATE,
+                  lambda v: v == 'on', 30) is None:
+        return 1
+    log('the "notify" chip is on, and still on after a reload')
+    time.sleep(1.0)  # the page has the run's state before it starts
+    request = urllib.request.Request(start_url, data=b'{}', method='POST',
+                                     headers={'Content-Type': 'application/json'})
+    with urllib.request.urlopen(request, timeout=10) as answer:
+        log(f'POST {start_url}: {answer.status}')
+    notes = wait_value(chrome, f'a notification "...{expect}..."', 'window.__notes || []',
+                       lambda v: any(expect in n['title'] for n in v), 120)
+    if notes is None:
+        return 1
+    time.sleep(5.0)  # anything told twice, or late, would be by now
+    notes = chrome.eval('window.__notes')
+    for n in notes:
+        log(f'notification: "{n["title"]}": {n["body"]!r}')
+    if len(notes) != 1:
+        log(f'FAIL: {len(notes)} notifications (expected one, "...{expect}...")')
+        return 1
+    chrome.eval('1')
+    problems = chrome.problems()
+    for p in problems:
+        log(f'page problem: {p}')
+    return 1 if problems else 0
+
+
 def main():
     confirm = len(sys.argv) == 6 and sys.argv[1] == '--confirm'
-    args = sys.argv[2:] if confirm else sys.argv[1:]
+    notify = len(sys.argv) == 8 and sys.argv[1] == '--notify'
+    args = sys.argv[2:] if confirm else sys.argv[4:] if notify else sys.argv[1:]
     if len(args) != 4:
         print(__doc__, file=sys.stderr)
         return 2
@@ -238,6 +319,8 @@ def main():
     try:
         if confirm:
             return confirm_check(chrome, url)
+        if notify:
+            return notify_check(chrome, url, sys.argv[2], sys.argv[3])
         chrome.open(url, 1280, 900)
         first = wait_for(chrome, 'the event stream ("live") and a progress number',
                          lambda s: s['live'] == 'live' and (s['done'] or '').isdigit()
