@@ -1,13 +1,18 @@
 #!/usr/bin/env bash
 # The sanitizer part of `scripts/setup.sh test`, which runs it after the Release suite (it can also
 # be run on its own once the packages are installed):
-#   scripts/sanitize.sh [asan|tsan]...   default: both
+#   scripts/sanitize.sh [--build] [asan|tsan]...   default: both
+#   scripts/sanitize.sh --fuzzers                  only the fuzz targets (scripts/fuzz.sh)
 # asan: ASan + UBSan build (clang) in build-asan/, tsan: ThreadSanitizer build (GCC) in
 # build-tsan/ (both beside BUILD_DIR; CMake option GS360_SANITIZE). Each builds only the test
 # executables it runs, then runs its selection below through CTest. Any sanitizer report, in a
 # test or in a process that a test started (gs360d, gs360, the storage kill writer), fails the
-# script.
-# Environment: BUILD_DIR (default build), JOBS (default nproc).
+# script. The ASan + UBSan folder also builds the libFuzzer targets (scripts/fuzz.sh runs them):
+# they need the same clang, ASan and UBSan build of the same libraries, which is then compiled
+# once. --build: configure and build only (scripts/setup.sh builds in the background while the
+# Release tests run; a later run without it finds everything built).
+# Environment: BUILD_DIR (default build), JOBS (default nproc), GS360_FUZZ=0: no fuzz targets,
+# GS360_FUZZ_SECONDS (scripts/fuzz.sh).
 set -euo pipefail
 
 here=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
@@ -24,6 +29,12 @@ jobs=${JOBS:-$(nproc)}
 # the whole pipeline end to end (1-6 min each under ASan) and would need gs360_cli, gs360_daemon,
 # gs360 and gs360d built a third time; the daemon's code runs under TSan below.
 asan_targets="test_base test_geometry test_storage test_plan test_gcode test_sim test_capture test_recon test_calib"
+asan_cmake=(-DGS360_FUZZ=OFF -DGS360_TEST_SOURCES=)
+if [ "${GS360_FUZZ:-1}" != 0 ]; then
+  asan_targets+=" gs360_fuzzers"
+  asan_cmake=(-DGS360_FUZZ=ON -DGS360_FUZZ_SECONDS="${GS360_FUZZ_SECONDS:-60}"
+    -DGS360_TEST_SOURCES=)
+fi
 asan_include='^(base|geometry|storage|plan|gcode|sim|capture|recon|calib):'
 asan_exclude=(
   # 230 s: 60 SIGKILLed writer processes; the writer's code runs in the run_database tests.
@@ -100,6 +111,15 @@ tsan_tests=(
   # the virtual camera's parallel render
   '^sim:tactile camera: the same seed and calls give identical images'
 )
+# The files those tests are in: the TSan build compiles only these of the test folders' *_test.cc
+# (CMake's GS360_TEST_SOURCES). A name above that matches no test fails the run.
+tsan_sources=(
+  daemon_parts_test.cc api_test.cc kill_resume_test.cc http_server_test.cc notifier_test.cc
+  notify_run_test.cc concurrency_test.cc capture_committer_test.cc
+  virtual_cnc_integration_test.cc marlin_machine_test.cc grbl_client_test.cc virtual_cnc_test.cc
+  frame_server_test.cc integration_test.cc surface_map_test.cc stages_test.cc pipeline_test.cc
+  train_test.cc pose_test.cc camera_render_test.cc
+)
 # -------------------------------------------------------------------------------------------------
 
 join() {
@@ -107,12 +127,25 @@ join() {
   echo "$*"
 }
 
-# run_sanitized NAME SANITIZE "TARGETS" INCLUDE [EXCLUDE...]
-run_sanitized() {
-  local name=$1 sanitize=$2 targets=$3 include=$4
-  shift 4
+# check_selection DIR PATTERN...: each pattern names at least one of DIR's tests
+check_selection() {
+  local dir=$1 p n missing=0
+  shift
+  for p in "$@"; do
+    n=$( (cd "$dir" && ctest -N -R "$p") | grep -c 'Test *#' || true)
+    if [ "$n" = 0 ]; then
+      echo "sanitize: no test matches '$p' (renamed or moved? see scripts/sanitize.sh)" >&2
+      missing=1
+    fi
+  done
+  return $missing
+}
+
+# build_sanitized NAME SANITIZE "TARGETS" [CMAKE_ARG...]: configures and builds build-NAME
+build_sanitized() {
+  local name=$1 sanitize=$2 targets=$3
+  shift 3
   local dir=$parent/build-$name
-  local logs=$dir/sanitizer-reports
   local start=$SECONDS
   echo "sanitize: $name (-fsanitize=$sanitize) in $dir"
   # ASan + UBSan with clang: GCC 12's UBSan instrumentation makes it compile the project in 1.35
@@ -129,10 +162,19 @@ run_sanitized() {
   fi
   # Warnings are the Release build's job (GCC, -Werror).
   CC=$cc CXX=$cxx cmake -S "$here" -B "$dir" -DCMAKE_BUILD_TYPE=Release \
-    -DGS360_SANITIZE="$sanitize" -DGS360_WERROR=OFF
+    -DGS360_SANITIZE="$sanitize" -DGS360_WERROR=OFF "$@"
   # shellcheck disable=SC2086
   cmake --build "$dir" -j "$jobs" --target $targets
-  local built=$SECONDS
+  echo "sanitize: $name: build $((SECONDS - start)) s"
+}
+
+# test_sanitized NAME INCLUDE [EXCLUDE...]: runs the selection in build-NAME
+test_sanitized() {
+  local name=$1 include=$2
+  shift 2
+  local dir=$parent/build-$name
+  local logs=$dir/sanitizer-reports
+  local start=$SECONDS
   rm -rf "$logs" && mkdir -p "$logs"
   local exclude=()
   [ $# -eq 0 ] || exclude=(-E "$(join "$@")")
@@ -160,21 +202,37 @@ run_sanitized() {
     done
     rc=1
   fi
-  echo "sanitize: $name: build $((built - start)) s, tests $((SECONDS - built)) s"
+  echo "sanitize: $name: tests $((SECONDS - start)) s"
   return $rc
 }
 
+if [ "${1:-}" = --fuzzers ]; then
+  build_sanitized asan address,undefined gs360_fuzzers -DGS360_FUZZ=ON \
+    -DGS360_FUZZ_SECONDS="${GS360_FUZZ_SECONDS:-60}"
+  exit 0
+fi
+build_only=0
+if [ "${1:-}" = --build ]; then
+  build_only=1
+  shift
+fi
 which=("$@")
 [ ${#which[@]} -gt 0 ] || which=(asan tsan)
 status=0
 for w in "${which[@]}"; do
   case "$w" in
     asan)
-      run_sanitized asan address,undefined "$asan_targets" "$asan_include" "${asan_exclude[@]}" ||
-        status=1
+      build_sanitized asan address,undefined "$asan_targets" ${asan_cmake[@]+"${asan_cmake[@]}"}
+      [ $build_only = 1 ] ||
+        test_sanitized asan "$asan_include" "${asan_exclude[@]}" || status=1
       ;;
     tsan)
-      run_sanitized tsan thread "$tsan_targets" "$(join "${tsan_tests[@]}")" || status=1
+      build_sanitized tsan thread "$tsan_targets" \
+        -DGS360_TEST_SOURCES="$(IFS=';' && echo "${tsan_sources[*]}")"
+      if [ $build_only = 0 ]; then
+        check_selection "$parent/build-tsan" "${tsan_tests[@]}" || status=1
+        test_sanitized tsan "$(join "${tsan_tests[@]}")" || status=1
+      fi
       ;;
     *)
       echo "sanitize: unknown '$w' (expected asan or tsan)" >&2

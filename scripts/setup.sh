@@ -77,21 +77,84 @@ if [ "$mode" = package ]; then
   exit 0
 fi
 
+# The test mode's sequence. The Release tests leave a third of the two cores idle (processes
+# starting, daemons waiting for the virtual rig) and the sanitizer tests some too: the sanitizer
+# builds use that, in the background at the lowest priority (their own session's scheduling
+# group at nice 19, so that the tests' deadlines see no difference), one after the other: ASan +
+# UBSan with the fuzz targets, then TSan. Each part's tests start once its build is there.
+background_builds() {
+  local builds=()
+  if [ "${GS360_SANITIZERS:-1}" != 0 ]; then
+    builds=(asan tsan)
+  elif [ "${GS360_FUZZ:-1}" != 0 ]; then
+    builds=(fuzzers)
+  fi
+  [ ${#builds[@]} -gt 0 ] || return 0
+  mkdir -p "$bg_dir"
+  rm -f "$bg_dir"/*.rc "$bg_dir"/*.log
+  # shellcheck disable=SC2016
+  setsid bash -c '
+    echo 19 > /proc/self/autogroup 2> /dev/null || true
+    for b in "${@:2}"; do
+      if [ "$b" = fuzzers ]; then arg=(--fuzzers); else arg=(--build "$b"); fi
+      rc=0
+      nice -n 19 "$1/scripts/sanitize.sh" "${arg[@]}" > "$BG_DIR/$b.log" 2>&1 || rc=$?
+      echo $rc > "$BG_DIR/$b.rc"
+      [ $rc = 0 ] || exit $rc
+    done' _ "$here" "${builds[@]}" &
+  bg_pid=$!
+}
+
+# await_build NAME: waits for the background build NAME, shows its log, fails if it failed
+await_build() {
+  [ -n "$bg_pid" ] || return 0
+  local waited=$SECONDS
+  while [ ! -f "$bg_dir/$1.rc" ]; do
+    if ! kill -0 "$bg_pid" 2> /dev/null; then
+      echo "setup: the background $1 build stopped without a status" >&2
+      return 1
+    fi
+    sleep 2
+  done
+  cat "$bg_dir/$1.log"
+  echo "setup: waited $((SECONDS - waited)) s for the $1 build"
+  [ "$(cat "$bg_dir/$1.rc")" = 0 ] || { echo "setup: the $1 build failed" >&2; return 1; }
+}
+
+stop_background() {
+  [ -z "$bg_pid" ] || kill -- -"$bg_pid" 2> /dev/null || true
+}
+
+run_tests() {
+  bg_dir=$(dirname "$build_dir")/build-background
+  bg_pid=
+  export BG_DIR=$bg_dir
+  trap stop_background EXIT
+  background_builds
+  (cd "$build_dir" && ctest --output-on-failure -j "$jobs" "$@")
+  # Then the sanitizer builds' selections of the tests (scripts/sanitize.sh), and each fuzz
+  # target on its seed corpus for a bounded time (scripts/fuzz.sh).
+  if [ "${GS360_SANITIZERS:-1}" != 0 ]; then
+    await_build asan
+    "$here/scripts/sanitize.sh" asan
+    if [ "${GS360_FUZZ:-1}" != 0 ]; then
+      "$here/scripts/fuzz.sh"
+    fi
+    await_build tsan
+    "$here/scripts/sanitize.sh" tsan
+  elif [ "${GS360_FUZZ:-1}" != 0 ]; then
+    await_build fuzzers
+    "$here/scripts/fuzz.sh"
+  fi
+}
+
 cmake -S "$here" -B "$build_dir" -DCMAKE_BUILD_TYPE=Release
 cmake --build "$build_dir" -j "$jobs"
 
 case "$mode" in
   build) ;;
   test)
-    (cd "$build_dir" && ctest --output-on-failure -j "$jobs" "$@")
-    # Then the sanitizer builds and their selections of the tests (scripts/sanitize.sh).
-    if [ "${GS360_SANITIZERS:-1}" != 0 ]; then
-      "$here/scripts/sanitize.sh"
-    fi
-    # And each fuzz target on its seed corpus for a bounded time (scripts/fuzz.sh).
-    if [ "${GS360_FUZZ:-1}" != 0 ]; then
-      "$here/scripts/fuzz.sh"
-    fi
+    run_tests "$@"
     ;;
   demo)
     "$build_dir/cli/gs360" demo "$@"
