@@ -52,7 +52,8 @@ double Since(std::chrono::steady_clock::time_point t0) {
 }
 
 // The user's gs360d.toml (--config) or the defaults, with the virtual rig's machine and camera,
-// this folder for data and a free loopback port.
+// this folder for data and a free loopback port. Its [[notify]] webhooks keep their whole URLs
+// (their paths hold the receivers' topics and tokens).
 void WriteDaemonConfig(const std::filesystem::path& path, const VirtualSetup& setup,
                        const SimArgs& sim) {
   DaemonConfig daemon;
@@ -71,7 +72,7 @@ void WriteDaemonConfig(const std::filesystem::path& path, const VirtualSetup& se
   std::ofstream out(path);
   out << "# gs360d for `gs360 demo`: the virtual rig of this process"
       << (sim.config.empty() ? std::string() : ", described by " + sim.config) << ".\n"
-      << DaemonConfigToToml(daemon);
+      << DaemonConfigToToml(daemon, /*keep_secrets=*/true);
   if (!out.flush()) throw std::runtime_error("cannot write " + path.string());
 }
 

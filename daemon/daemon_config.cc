@@ -269,13 +269,13 @@ DaemonConfig LoadDaemonConfig(const std::filesystem::path& path,
   return DaemonConfigFromToml(ss.str(), path.string(), path.parent_path(), read_sim);
 }
 
-std::string DaemonConfigToToml(const DaemonConfig& c) {
+std::string DaemonConfigToToml(const DaemonConfig& c, bool keep_secrets) {
   nlohmann::json j = RunConfigToJson(c.run);
   j.erase("name");
   j["data_dir"] = c.data_dir.string();
   j["server"] = {{"listen", c.server.listen},
                  {"port", c.server.port},
-                 {"token", c.server.token.empty() ? "" : "(set)"},
+                 {"token", keep_secrets || c.server.token.empty() ? c.server.token : "(set)"},
                  {"max_body_bytes", c.server.max_body_bytes},
                  {"max_upload_bytes", c.server.max_upload_bytes},
                  {"threads", c.server.threads},
@@ -292,11 +292,11 @@ std::string DaemonConfigToToml(const DaemonConfig& c) {
                  {"max_feed_mm_per_min", c.limits.max_feed_mm_per_min}};
   j["calibration"] = {{"checkerboards", c.calibration.checkerboards},
                       {"threads", c.calibration.threads}};
-  // Webhook URLs keep their secrets in the path: only the scheme and host are printed.
+  // Webhook URLs keep their secrets in the path: unless asked, only the scheme and host.
   toml::array notify;
   for (const NotifyTarget& t : c.notify) {
     toml::table n;
-    if (!t.url.empty()) n.insert("url", t.RedactedUrl());
+    if (!t.url.empty()) n.insert("url", keep_secrets ? t.url : t.RedactedUrl());
     if (!t.command.empty()) {
       toml::array argv;
       for (const std::string& a : t.command) argv.push_back(a);

@@ -92,8 +92,10 @@ DaemonConfig DaemonConfigFromToml(std::string_view text, const std::string& wher
                                   const std::function<void(JsonReader&)>& read_sim = {});
 DaemonConfig LoadDaemonConfig(const std::filesystem::path& path,
                               const std::function<void(JsonReader&)>& read_sim = {});
-// The configuration as TOML (every key, with its value): `gs360d --print-config`.
-std::string DaemonConfigToToml(const DaemonConfig& config);
+// The configuration as TOML (every key, with its value): `gs360d --print-config`, which shows
+// webhooks by their scheme and host and the token as "(set)". With `keep_secrets`, both as they
+// are: a configuration written for another gs360d to read (`gs360 demo --config`).
+std::string DaemonConfigToToml(const DaemonConfig& config, bool keep_secrets = false);
 
 // True for 127.0.0.0/8, ::1 and "localhost".
 bool IsLoopbackAddress(std::string_view address);

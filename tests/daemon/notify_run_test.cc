@@ -149,6 +149,11 @@ TEST_CASE("notify: a [[notify]] table that is wrong stops gs360d naming the line
   const std::string printed = DaemonConfigToToml(c);
   CHECK(printed.find("https://ntfy.sh/...") != std::string::npos);
   CHECK(printed.find("lab") == std::string::npos);
+  // Written for another gs360d to read (gs360 demo --config), the URL is whole.
+  const DaemonConfig again = DaemonConfigFromToml(DaemonConfigToToml(c, true), "again.toml");
+  REQUIRE(again.notify.size() == 2);
+  CHECK(again.notify[0].url == "https://ntfy.sh/lab");
+  CHECK(again.notify[1].command == c.notify[1].command);
 
   struct Case {
     std::string toml, message;
