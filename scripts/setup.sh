@@ -130,6 +130,8 @@ run_tests() {
   bg_pid=
   export BG_DIR=$bg_dir
   trap stop_background EXIT
+  trap 'exit 130' INT
+  trap 'exit 143' TERM
   background_builds
   (cd "$build_dir" && ctest --output-on-failure -j "$jobs" "$@")
   # Then the sanitizer builds' selections of the tests (scripts/sanitize.sh), and each fuzz

@@ -2,8 +2,10 @@
 """A webhook receiver to try gs360d's [[notify]] tables with, on this machine:
 
   scripts/webhook_receiver.py [--port 8765] [--out notifications.jsonl] [--status 200]
+                              [--delay SECONDS]
 
-Listens on 127.0.0.1, answers every POST with --status, and appends one JSON line per request to
+Listens on 127.0.0.1, answers every POST with --status after --delay seconds (a slow or hanging
+receiver), and appends one JSON line per request to
 --out (and a short line to stdout): the time it arrived, the path, the content type, the body
 (parsed when it is JSON; its size otherwise, e.g. an ntfy attachment) and, for a JSON body with
 "frame_png_base64", the frame's size in bytes. Point a [[notify]] table at it:
@@ -26,6 +28,7 @@ def main():
     parser.add_argument('--port', type=int, default=8765)
     parser.add_argument('--out', default='notifications.jsonl')
     parser.add_argument('--status', type=int, default=200, help='HTTP status to answer with')
+    parser.add_argument('--delay', type=float, default=0.0, help='seconds before answering')
     args = parser.parse_args()
 
     class Handler(http.server.BaseHTTPRequestHandler):
@@ -50,6 +53,8 @@ def main():
             b = record.get('body') if isinstance(record.get('body'), dict) else {}
             print(f'{time.strftime("%H:%M:%S")} {self.path} {b.get("event", "?")}: '
                   f'{b.get("title", record["title"])}', flush=True)
+            if args.delay > 0:
+                time.sleep(args.delay)
             self.send_response(args.status)
             self.send_header('Content-Length', '2')
             self.end_headers()

@@ -200,7 +200,7 @@ is_int() { [[ $1 =~ ^[0-9]+$ ]]; }
 
 log "temp dir $TMP; $("$CHROMIUM" --version 2> /dev/null | head -n 1)"
 
-rig_ready() { [ "$(wc -l < "$TMP/rig.out")" -ge 2 ]; }
+rig_ready() { [ -f "$TMP/rig.out" ] && [ "$(wc -l < "$TMP/rig.out")" -ge 2 ]; }
 daemon_ready() {
   [ -s "$TMP/data/daemon.json" ] || return 1
   URL=$(json_str url < "$TMP/data/daemon.json")
@@ -211,7 +211,9 @@ daemon_ready_or_gone() { daemon_ready || ! alive "$1"; }
 RIG_ARGS=() # more arguments of gs360 sim-rig
 start_rig_and_daemon() { # sets RIG_PID, DAEMON_PID and URL; returns 1 if gs360d exits at once
   local pid
-  rm -rf "$TMP/data" "$TMP/cam.sock"
+  # The rig's output file goes first: the new rig truncates it only once it runs, and the old
+  # rig's two lines must not be read as its.
+  rm -rf "$TMP/data" "$TMP/cam.sock" "$TMP/rig.out"
   "$GS360" sim-rig --time-scale 20 --socket "$TMP/cam.sock" ${RIG_ARGS[@]+"${RIG_ARGS[@]}"} \
     > "$TMP/rig.out" 2> "$TMP/rig.err" &
   RIG_PID=$!
