@@ -292,7 +292,7 @@
       }
     }
     if (fresh) run._issued = issued;
-    if (fresh && 'state' in r) noteState(r.id, run.state);
+    if (fresh && 'state' in r) noteState(r.id, run.state, false);
     return run;
   }
 
@@ -302,7 +302,12 @@
   // a tab left open in the background then tells its user. The choice is kept by the browser.
   const NOTIFY_KEY = 'gs360d.notify';
   const ENDED = new Set(['done', 'failed', 'cancelled', 'interrupted']);
-  const notify = { active: new Set(), alarmed: new Map() }; // ids seen active; id -> time of alarm
+  const notify = {
+    seen: new Set(), // runs whose state the page knows
+    active: new Set(), // runs seen active, whose end is to be told
+    told: new Set(), // runs whose final end (done, failed, cancelled) was told
+    alarmed: new Map(), // run -> time of its alarm
+  };
   const ALARM_WAIT_MS = 3000;
 
   function notifySupported() {
@@ -368,15 +373,25 @@
     }
   }
 
-  // Called with every state the page learns of, from the list, a run's view or an event: the end
-  // of a run seen active is told once; an interruption that follows an alarm is not told again.
-  function noteState(id, s) {
+  // Called with every state the page learns of, from an event or from the list or a run's view:
+  // the end of a run seen active is told once; an interruption that follows an alarm is not told
+  // again. While the event stream is live, it alone tells the changes, in order: a listing that
+  // crossed it (a run's `running` answered after its `done` event) only says what was active when
+  // the page first saw the run.
+  function noteState(id, s, fromEvent) {
+    if (!fromEvent && state.live === 'stream') {
+      if (!notify.seen.has(id) && ACTIVE.has(s)) notify.active.add(id);
+      notify.seen.add(id);
+      return;
+    }
+    notify.seen.add(id);
     if (ACTIVE.has(s)) {
       notify.active.add(id);
       notify.alarmed.delete(id);
       return;
     }
-    if (!ENDED.has(s) || !notify.active.delete(id)) return;
+    if (!ENDED.has(s) || !notify.active.delete(id) || notify.told.has(id)) return;
+    if (TERMINAL.has(s)) notify.told.add(id);
     const tell = () => {
       if (s === 'interrupted' && notify.alarmed.has(id)) return;
       const r = state.runs.get(id) || {};
@@ -1355,7 +1370,7 @@
         autoSelect();
       }
     } else {
-      noteState(d.run, d.state);
+      noteState(d.run, d.state, true);
       const r = state.runs.get(d.run);
       if (r) {
         r.state = d.state;
