@@ -53,8 +53,12 @@ std::optional<FeedItem> TranslateHubEvent(const HubEvent& e, std::set<std::int64
     if (outcome == "awaiting confirmation") {
       return FeedItem{NotifyEvent::kAwaitingConfirmation, run, text("message")};
     }
-    if (outcome == "failed") return FeedItem{NotifyEvent::kFailed, run, text("message")};
-    if (outcome == "stopped" && alarmed.count(run) == 0) {
+    // A session that failed leaves its run failed, or interrupted (resumable: an alarm, a camera
+    // that stopped); the latter is an interruption, not sent again after its alarm.
+    if (outcome == "failed" && text("state") == "failed") {
+      return FeedItem{NotifyEvent::kFailed, run, text("message")};
+    }
+    if ((outcome == "stopped" || outcome == "failed") && alarmed.count(run) == 0) {
       return FeedItem{NotifyEvent::kInterrupted, run, text("message")};
     }
   } else if (e.type == "convergence") {

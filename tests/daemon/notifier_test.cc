@@ -11,6 +11,7 @@
 #include <filesystem>
 #include <fstream>
 #include <mutex>
+#include <set>
 #include <sstream>
 #include <thread>
 
@@ -19,6 +20,7 @@
 
 #include "base/base64.h"
 #include "daemon/notifier.h"
+#include "daemon/notify_feed.h"
 #include "tests/daemon/webhook_receiver.h"
 #include "tests/wait.h"
 
@@ -359,4 +361,27 @@ TEST_CASE("notify: a command gets the notification as JSON on stdin and in GS360
                Catch::StartsWith("cannot run gs360-no-such-notifier"));
   }
   std::filesystem::remove_all(dir);
+}
+
+TEST_CASE("notify: a session that fails leaves an interruption, sent unless its alarm was",
+          "[daemon][notify]") {
+  std::set<std::int64_t> alarmed;
+  const auto end = [](const std::string& outcome, const std::string& state) {
+    return HubEvent{0, "run_end",
+                    Json{{"run", 3}, {"outcome", outcome}, {"state", state}, {"message", "why"}}};
+  };
+  // The run can be resumed (a camera that stopped): an interruption, with its reason.
+  auto item = TranslateHubEvent(end("failed", "interrupted"), alarmed);
+  REQUIRE(item);
+  CHECK(item->event == NotifyEvent::kInterrupted);
+  CHECK(item->detail == "why");
+  // The run itself failed.
+  item = TranslateHubEvent(end("failed", "failed"), alarmed);
+  REQUIRE(item);
+  CHECK(item->event == NotifyEvent::kFailed);
+  // After the session's alarm, its end says nothing new: neither "failed" nor "interrupted".
+  REQUIRE(TranslateHubEvent(HubEvent{0, "alarm", Json{{"run", 3}, {"message", "ALARM:1"}}}, alarmed)
+              ->event == NotifyEvent::kAlarm);
+  CHECK_FALSE(TranslateHubEvent(end("failed", "interrupted"), alarmed));
+  CHECK_FALSE(TranslateHubEvent(end("stopped", "interrupted"), alarmed));
 }
