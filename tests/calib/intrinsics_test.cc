@@ -9,11 +9,12 @@
 #include <vector>
 
 #include "sim/checkerboard.h"
+#include "tests/angles.h"
 
 namespace gs360 {
 namespace {
 
-constexpr double kRadToDeg = 180.0 / std::numbers::pi;
+using gs360::test::kRadToDeg;
 
 std::vector<cv::Mat> RenderBoards(const FisheyeIntrinsics& truth, int count, std::uint64_t seed) {
   CheckerboardPoseOptions pose_options;

@@ -18,11 +18,12 @@
 #include "sim/ground_truth.h"
 #include "sim/rig_model.h"
 #include "sim/tactile_camera.h"
+#include "tests/angles.h"
 
 namespace gs360 {
 namespace {
 
-constexpr double kRadToDeg = 180.0 / std::numbers::pi;
+using gs360::test::kRadToDeg;
 
 double CentreErrorMm(const Rigid3d& a, const Rigid3d& b) {
   return (a.Inverse().translation - b.Inverse().translation).norm();

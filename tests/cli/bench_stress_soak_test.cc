@@ -19,7 +19,7 @@ namespace fs = std::filesystem;
 
 namespace {
 
-fs::path FreshDir(const std::string& name) {
+fs::path FreshSoakDir(const std::string& name) {
   const fs::path dir =
       fs::temp_directory_path() / ("gs360-" + name + "-" + std::to_string(::getpid()));
   fs::remove_all(dir);
@@ -30,7 +30,7 @@ fs::path FreshDir(const std::string& name) {
 }  // namespace
 
 TEST_CASE("bench stress prints JSON per case and refuses an unknown stage", "[cli][stress]") {
-  const fs::path dir = FreshDir("bench-stress");
+  const fs::path dir = FreshSoakDir("bench-stress");
   const auto r = Gs360("--json bench stress --only geometry --cache " + dir.string());
   INFO(r.out);
   REQUIRE(r.status == 0);
@@ -46,7 +46,7 @@ TEST_CASE("bench stress prints JSON per case and refuses an unknown stage", "[cl
 
 TEST_CASE("bench soak survives a fault every few probes and captures every probe once",
           "[cli][soak]") {
-  const fs::path dir = FreshDir("bench-soak");
+  const fs::path dir = FreshSoakDir("bench-soak");
   const auto r = Gs360("bench soak --candidates 120 --fault-every 8 --seed 3 --dir " +
                        (dir / "soak").string());
   INFO(r.out);

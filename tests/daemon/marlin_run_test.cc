@@ -37,7 +37,7 @@ RigFixture PrinterFixture(const std::string& name, int candidates,
                     [](RunConfig& c) { cli::ApplyPrinterDefaults(&c); });
 }
 
-void CheckCommitted(RigFixture& f, std::int64_t run_id) {
+void CheckMarlinCommitted(RigFixture& f, std::int64_t run_id) {
   RunDatabaseOptions ro;
   ro.read_only = true;
   RunDatabase db(f.db, ro);
@@ -57,19 +57,20 @@ void CheckCommitted(RigFixture& f, std::int64_t run_id) {
 
 // The fault after `after` committed probes; the run resumed (confirming what it asks, as a user
 // who checked) until done. The first session's report.
-RunReport RunWithFault(RigFixture& f, std::int64_t after, const std::function<void()>& inject) {
+RunReport RunMarlinWithFault(RigFixture& f, std::int64_t after,
+                             const std::function<void()>& inject) {
   f.config.engine.sync_timeout_s = 10.0;
   RunEngine engine(f.db);
   const auto run_id = engine.CreateRun(f.config);
   AtProbe(engine, after, inject);
   const RunReport first = engine.Execute(run_id);
-  CheckCommitted(f, run_id);
+  CheckMarlinCommitted(f, run_id);
   RunReport last = first;
   for (int attempt = 0; attempt < 3 && last.outcome != RunOutcome::kDone; ++attempt) {
     SessionOverrides overrides;
     overrides.confirm = RunDatabase(f.db).GetRun(run_id)->awaiting;
     last = engine.Execute(run_id, overrides);
-    CheckCommitted(f, run_id);
+    CheckMarlinCommitted(f, run_id);
   }
   CHECK(last.outcome == RunOutcome::kDone);
   CHECK(last.counts.planned == 0);
@@ -77,7 +78,7 @@ RunReport RunWithFault(RigFixture& f, std::int64_t after, const std::function<vo
 }
 
 // A terminal on the printer: trusts its position, sends `lines` (Marlin's own), waits for each.
-void ByHand(RigFixture& f, const std::vector<std::string>& lines) {
+void MarlinByHand(RigFixture& f, const std::vector<std::string>& lines) {
   MarlinMachine machine(
       [path = f.rig->PtyPath()] { return OpenTermiosTransport(path, TransportOptions{}); });
   machine.Connect();
@@ -103,7 +104,7 @@ TEST_CASE("marlin: a run on a printer captures every probe at its press point",
   const RunReport report = engine.Execute(run_id);
   CHECK(report.outcome == RunOutcome::kDone);
   CHECK(report.counts.captured >= static_cast<std::int64_t>(plan.probes.size()) - 2);
-  CheckCommitted(f, run_id);
+  CheckMarlinCommitted(f, run_id);
   const std::string events = RunEvents(f, run_id);
   CHECK_THAT(events, Contains("connected to Marlin 2.1") && Contains("Virtual Ender-3"));
   // A board that does not reboot on open: its MPos taken (a fresh run, machine.home), then
@@ -117,26 +118,26 @@ TEST_CASE("marlin fault: a garbled line is resent, a lost line or ok retried, no
           "[daemon][marlin]") {
   SECTION("a checksum error") {
     RigFixture f = PrinterFixture("marlin-garble", 30);
-    const RunReport r = RunWithFault(f, 4, [&] { f.rig->cnc().GarbleNextBytes(3); });
+    const RunReport r = RunMarlinWithFault(f, 4, [&] { f.rig->cnc().GarbleNextBytes(3); });
     CHECK(r.outcome == RunOutcome::kDone);
     CHECK(r.recoveries == 0);
   }
   SECTION("bytes lost on the way to the printer") {
     RigFixture f = PrinterFixture("marlin-drop", 30);
-    const RunReport r = RunWithFault(f, 4, [&] { f.rig->cnc().DropNextBytes(40); });
+    const RunReport r = RunMarlinWithFault(f, 4, [&] { f.rig->cnc().DropNextBytes(40); });
     CHECK(r.outcome == RunOutcome::kDone);
     CHECK(r.recoveries == 0);
   }
   SECTION("a lost ok") {
     RigFixture f = PrinterFixture("marlin-lost-ok", 30);
-    const RunReport r = RunWithFault(f, 4, [&] { f.rig->cnc().LoseNextReply(); });
+    const RunReport r = RunMarlinWithFault(f, 4, [&] { f.rig->cnc().LoseNextReply(); });
     CHECK(r.outcome == RunOutcome::kDone);
     CHECK(r.recoveries == 0);
   }
   SECTION("garbled replies") {
     RigFixture f = PrinterFixture("marlin-garble-reply", 30);
-    const RunReport r =
-        RunWithFault(f, 4, [&] { f.rig->cnc().GarbleNextBytes(6, FaultDirection::kCncToHost); });
+    const RunReport r = RunMarlinWithFault(
+        f, 4, [&] { f.rig->cnc().GarbleNextBytes(6, FaultDirection::kCncToHost); });
     CHECK(r.outcome == RunOutcome::kDone);
   }
 }
@@ -155,7 +156,7 @@ TEST_CASE("marlin: long waits bring busy keep-alives, which are no time-out", "[
   const RunReport r = engine.Execute(run_id);
   CHECK(r.outcome == RunOutcome::kDone);
   CHECK(r.recoveries == 0);
-  CheckCommitted(f, run_id);
+  CheckMarlinCommitted(f, run_id);
   INFO("keep-alives: " << f.rig->cnc().Stats().keepalives);
   CHECK(f.rig->cnc().Stats().keepalives >= 20);
 }
@@ -163,7 +164,7 @@ TEST_CASE("marlin: long waits bring busy keep-alives, which are no time-out", "[
 TEST_CASE("marlin fault: a reboot mid-run loses the position: homed when clear, else asked",
           "[daemon][marlin]") {
   RigFixture f = PrinterFixture("marlin-reboot", 30);
-  const RunReport r = RunWithFault(f, 4, [&] { f.rig->cnc().PowerCycle(); });
+  const RunReport r = RunMarlinWithFault(f, 4, [&] { f.rig->cnc().PowerCycle(); });
   CHECK((r.outcome == RunOutcome::kDone || r.outcome == RunOutcome::kAwaiting));
   if (r.outcome == RunOutcome::kAwaiting) CHECK_THAT(r.message, Contains("in or near the gel"));
   CHECK_THAT(RunEvents(f, 1), Contains("the printer rebooted"));
@@ -195,7 +196,7 @@ TEST_CASE("marlin: a board that reboots when its port opens is homed by each ses
   // The next session's reboot finds the motion on record: raised above it, homed, done.
   const RunReport resumed = engine.Execute(run_id);
   CHECK(resumed.outcome == RunOutcome::kDone);
-  CheckCommitted(f, run_id);
+  CheckMarlinCommitted(f, run_id);
   const std::string events = RunEvents(f, run_id);
   CHECK_THAT(events, Contains("rebooted when the port opened") && Contains("raising Z"));
   CHECK(f.rig->cnc().Stats().boots >= 4);  // power-up, then once per session
@@ -220,7 +221,7 @@ TEST_CASE("marlin fault: a halt mid-move stops the run, and once reset it resume
     r = engine.Execute(run_id, confirm);
   }
   CHECK(r.outcome == RunOutcome::kDone);
-  CheckCommitted(f, run_id);
+  CheckMarlinCommitted(f, run_id);
 }
 
 TEST_CASE("marlin: a run killed mid-press backs out along the probe's axis before any travel",
@@ -235,8 +236,8 @@ TEST_CASE("marlin: a run killed mid-press backs out along the probe's axis befor
   REQUIRE(next);
   const PlannedProbe& p = plan.probes.at(static_cast<std::size_t>(next->plan_index));
   // What a SIGKILL during its press leaves: the ball 1 mm in the gel, the motion recorded.
-  ByHand(f, {"G90", MachineMoveLine(p.approach_machine, 3000.0),
-             MachineMoveLine(p.press_machine, 60.0)});
+  MarlinByHand(f, {"G90", MachineMoveLine(p.approach_machine, 3000.0),
+                   MachineMoveLine(p.press_machine, 60.0)});
   RunDatabase(f.db).SetCommandedPath(
       run_id, std::vector<Eigen::Vector3d>{p.approach_machine, p.press_machine});
 
@@ -244,5 +245,5 @@ TEST_CASE("marlin: a run killed mid-press backs out along the probe's axis befor
   CHECK(resumed.outcome == RunOutcome::kDone);
   CHECK_THAT(RunEvents(f, run_id),
              Contains("backed out along probe " + std::to_string(p.plan_index) + "'s axis"));
-  CheckCommitted(f, run_id);
+  CheckMarlinCommitted(f, run_id);
 }

@@ -7,12 +7,13 @@
 
 #include "geometry/fisheye.h"
 #include "geometry/fisheye_cv.h"
+#include "tests/angles.h"
 
 using namespace gs360;
 
 namespace {
 
-constexpr double kDeg = std::numbers::pi / 180.0;
+using gs360::test::kDeg;
 
 // A lens with every parameter non-trivial (as cv::fisheye::calibrate would return).
 FisheyeIntrinsics DistortedLens() {

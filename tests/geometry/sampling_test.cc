@@ -9,12 +9,13 @@
 
 #include "geometry/sampling.h"
 #include "geometry/shapes.h"
+#include "tests/angles.h"
 
 using namespace gs360;
 
 namespace {
 
-constexpr double kPi = std::numbers::pi;
+using gs360::test::kPi;
 
 struct Finger {
   std::shared_ptr<const RevolutionProfile> profile = MakeCylinderCapProfile({});

@@ -6,12 +6,13 @@
 #include "geometry/bvh.h"
 #include "geometry/mesh.h"
 #include "geometry/shapes.h"
+#include "tests/angles.h"
 
 using namespace gs360;
 
 namespace {
 
-constexpr double kPi = std::numbers::pi;
+using gs360::test::kPi;
 
 SensorShapeOptions ShapeOptions(SensorShape shape) {
   SensorShapeOptions o;

@@ -10,13 +10,14 @@
 #include "plan/coverage.h"
 #include "plan/plan.h"
 #include "rig/rig_config.h"
+#include "tests/angles.h"
 
 using namespace gs360;
 using Catch::Matchers::Contains;
 
 namespace {
 
-constexpr double kDeg = std::numbers::pi / 180.0;
+using gs360::test::kDeg;
 
 Eigen::Vector3d Ring(double azimuth_deg, double z) {
   return {10.0 * std::cos(azimuth_deg * kDeg), 10.0 * std::sin(azimuth_deg * kDeg), z};

@@ -9,13 +9,14 @@
 
 #include "plan/plan.h"
 #include "rig/rig_config.h"
+#include "tests/angles.h"
 
 using namespace gs360;
 using Catch::Matchers::Contains;
 
 namespace {
 
-constexpr double kDeg = std::numbers::pi / 180.0;
+using gs360::test::kDeg;
 
 RigGeometry Rig(SensorShape shape = SensorShape::kCylinderCap) {
   RigConfig o;

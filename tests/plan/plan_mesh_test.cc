@@ -11,6 +11,7 @@
 #include "plan/plan.h"
 #include "rig/rig_config.h"
 #include "rig/rig_shape.h"
+#include "tests/angles.h"
 
 using namespace gs360;
 using Catch::Matchers::Contains;
@@ -19,7 +20,7 @@ namespace fs = std::filesystem;
 namespace {
 
 constexpr int kSegments = 96;
-constexpr double kPi = 3.14159265358979323846;
+using gs360::test::kPi;
 
 fs::path TempDir() {
   const fs::path dir = fs::path(GS360_BINARY_DIR) / "test_tmp" / "plan_mesh";

@@ -8,12 +8,13 @@
 #include "geometry/bvh.h"
 #include "recon/integration.h"
 #include "recon/reconstructor.h"
+#include "tests/angles.h"
 #include "tests/recon/integration_scene.h"
 
 namespace gs360 {
 namespace {
 
-constexpr double kDeg = std::numbers::pi / 180.0;
+using gs360::test::kDeg;
 
 // The scene's exact normals as tangent-frame slopes (what a perfect MLP would give).
 cv::Mat SlopesOf(const SurfaceMap& map, const testing::PressScene& s) {

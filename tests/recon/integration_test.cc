@@ -8,12 +8,13 @@
 #include <thread>
 
 #include "geometry/bvh.h"
+#include "tests/angles.h"
 #include "tests/recon/integration_scene.h"
 
 namespace gs360 {
 namespace {
 
-constexpr double kDeg = std::numbers::pi / 180.0;
+using gs360::test::kDeg;
 
 cv::Mat Laplacian5(const cv::Mat& psi) {
   cv::Mat f = cv::Mat::zeros(psi.size(), CV_64F);

@@ -10,12 +10,13 @@
 #include "geometry/bvh.h"
 #include "geometry/fisheye.h"
 #include "geometry/shapes.h"
+#include "tests/angles.h"
 #include "tests/recon/integration_scene.h"
 
 namespace gs360 {
 namespace {
 
-constexpr double kDeg = std::numbers::pi / 180.0;
+using gs360::test::kDeg;
 
 // A square plate at z = `z` (sensor frame), normal facing -z (toward a camera at the origin).
 TriangleMesh Plate(double z, double half) {

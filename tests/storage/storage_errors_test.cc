@@ -41,7 +41,7 @@ std::vector<ProbePlanEntry> Plan(int n) {
   return plan;
 }
 
-CaptureReport Report(double t) {
+CaptureReport ReportAt(double t) {
   return {{1, 2, 3}, t, t + 0.1};
 }
 
@@ -233,7 +233,7 @@ TEST_CASE("a read-only location is a clear error and committed data stays readab
     RunDatabase db(path);
     run = db.CreateRun("{}", "h");
     const std::vector<std::int64_t> ids = db.InsertPlan(run, Plan(3));
-    frame = db.CommitCapture(ids[0], image, Report(1));
+    frame = db.CommitCapture(ids[0], image, ReportAt(1));
   }  // closing checkpoints the WAL into the file and removes -wal / -shm
   REQUIRE_FALSE(fs::exists(ro_dir / "rig.gs360db-wal"));
   fs::permissions(path, fs::perms::owner_read | fs::perms::group_read | fs::perms::others_read);
@@ -282,7 +282,7 @@ TEST_CASE("a full disk rolls back the failing commit and keeps earlier ones", "[
   for (std::size_t i = 0; i < ids.size() && !error; ++i) {
     const cv::Mat image = test::NoisyFrame(static_cast<int>(i), 320, 240);  // ~200 kB as PNG
     try {
-      db.CommitCapture(ids[i], image, Report(static_cast<double>(i)));
+      db.CommitCapture(ids[i], image, ReportAt(static_cast<double>(i)));
       committed.push_back(image);
     } catch (const StorageError& e) {
       error = e;
@@ -313,7 +313,7 @@ TEST_CASE("a full disk rolls back the failing commit and keeps earlier ones", "[
 
   // With room again (a new connection without the cap), the same probe commits.
   RunDatabase roomy(path);
-  roomy.CommitCapture(ids[n], test::NoisyFrame(999, 320, 240), Report(1000));
+  roomy.CommitCapture(ids[n], test::NoisyFrame(999, 320, 240), ReportAt(1000));
   CHECK(roomy.CountProbes(run).captured == static_cast<std::int64_t>(n + 1));
   CHECK(test::RawDb(path).Text("PRAGMA integrity_check") == "ok");
 }
@@ -326,9 +326,9 @@ TEST_CASE("a corrupt frame blob is an error naming the file, frame and probe",
   const std::int64_t run = db.CreateRun("{}", "h");
   const std::vector<std::int64_t> ids = db.InsertPlan(run, Plan(3));
   const cv::Mat good = test::NoisyFrame(1, 64, 48);
-  const std::int64_t f0 = db.CommitCapture(ids[0], test::NoisyFrame(0, 64, 48), Report(1));
-  const std::int64_t f1 = db.CommitCapture(ids[1], good, Report(2));
-  const std::int64_t f2 = db.CommitCapture(ids[2], test::NoisyFrame(2, 64, 48), Report(3));
+  const std::int64_t f0 = db.CommitCapture(ids[0], test::NoisyFrame(0, 64, 48), ReportAt(1));
+  const std::int64_t f1 = db.CommitCapture(ids[1], good, ReportAt(2));
+  const std::int64_t f2 = db.CommitCapture(ids[2], test::NoisyFrame(2, 64, 48), ReportAt(3));
 
   test::RawDb raw(path);
   const std::string where = " WHERE id = " + std::to_string(f0);
