@@ -23,6 +23,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "base/atomic_file.h"
 #include "base/format.h"
 #include "calib/report.h"
 #include "cli/commands.h"
@@ -161,15 +162,7 @@ struct Sidecar {
     if (in) data = Json::parse(in, nullptr, /*allow_exceptions=*/false);
     if (!data.is_object()) data = Json::object();
   }
-  void Save() const {
-    const auto tmp = path.string() + ".tmp";
-    {
-      std::ofstream out(tmp);
-      out << data.dump(1) << "\n";
-      if (!out.flush()) throw std::runtime_error("cannot write " + tmp);
-    }
-    std::filesystem::rename(tmp, path);
-  }
+  void Save() const { WriteFileAtomically(path, data.dump(1) + "\n"); }
 };
 
 // A virtual rig per acquisition: the same shape and seed give the same hidden truth, also after

@@ -9,6 +9,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include "base/atomic_file.h"
 #include "base/json_reader.h"
 #include "calib/report.h"
 #include "recon/reconstructor.h"
@@ -24,17 +25,6 @@ double UnixNow() {
 
 // Thrown from the pipeline's log callback to stop a job between two steps.
 struct Stopped {};
-
-void WriteFileAtomically(const std::filesystem::path& path, const std::string& text) {
-  std::filesystem::create_directories(path.parent_path());
-  const std::filesystem::path tmp = path.string() + ".tmp";
-  {
-    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-    out << text;
-    if (!out.flush()) throw std::runtime_error("cannot write " + tmp.string());
-  }
-  std::filesystem::rename(tmp, path);
-}
 
 }  // namespace
 
@@ -309,8 +299,9 @@ nlohmann::json CalibrationJobs::ViewOf(const Job& job) const {
 }
 
 void CalibrationJobs::Save(const Job& job) const {
-  WriteFileAtomically(runs_dir_ / std::to_string(job.run_id) / "calibration.json",
-                      ViewOf(job).dump(1));
+  const std::filesystem::path dir = runs_dir_ / std::to_string(job.run_id);
+  std::filesystem::create_directories(dir);
+  WriteFileAtomically(dir / "calibration.json", ViewOf(job).dump(1));
 }
 
 std::optional<std::string> CalibrationJobs::State(std::int64_t run_id) const {

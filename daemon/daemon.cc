@@ -10,6 +10,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include "base/atomic_file.h"
 #include "base/hash.h"
 #include "base/json_reader.h"
 #include "base/version.h"
@@ -64,16 +65,6 @@ InstanceLock AcquirePortLock(const std::string& uri, const std::string& holder) 
       std::this_thread::sleep_for(std::chrono::milliseconds(100));
     }
   }
-}
-
-void WriteText(const std::filesystem::path& path, const std::string& text) {
-  const std::filesystem::path tmp = path.string() + ".tmp";
-  {
-    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-    out << text;
-    if (!out.flush()) throw std::runtime_error("cannot write " + tmp.string());
-  }
-  std::filesystem::rename(tmp, path);
 }
 
 }  // namespace
@@ -215,8 +206,9 @@ void Daemon::SetUrl(const std::string& url) {
   std::lock_guard port_lock(port_lock_mutex_);
   holder_ = "gs360d pid " + std::to_string(::getpid()) + " at " + url;
   if (port_lock_.Held()) port_lock_.SetHolder(holder_);
-  WriteText(config_.data_dir / "daemon.json",
-            Json{{"pid", ::getpid()}, {"url", url}, {"started_at", started_at_}}.dump() + "\n");
+  WriteFileAtomically(
+      config_.data_dir / "daemon.json",
+      Json{{"pid", ::getpid()}, {"url", url}, {"started_at", started_at_}}.dump() + "\n");
 }
 
 RunDatabase& Daemon::Reader() const {

@@ -8,6 +8,7 @@
 
 #include <opencv2/imgcodecs.hpp>
 
+#include "base/atomic_file.h"
 #include "base/byte_io.h"
 #include "base/hash.h"
 #include "geometry/bvh.h"
@@ -327,23 +328,12 @@ ModelBundle DeserializeModelBundle(std::span<const std::uint8_t> bytes, const st
 std::vector<std::uint8_t> WriteModelBundle(const std::filesystem::path& path,
                                            const ModelBundle& bundle) {
   const std::vector<std::uint8_t> bytes = SerializeModelBundle(bundle);
-  std::filesystem::path tmp = path;
-  tmp += ".tmp";
-  {
-    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-    if (!out) throw ModelBundleError(path.string() + ": cannot open for writing");
-    out.write(reinterpret_cast<const char*>(bytes.data()),
-              static_cast<std::streamsize>(bytes.size()));
-    out.flush();
-    if (!out) {
-      std::error_code ec;
-      std::filesystem::remove(tmp, ec);
-      throw ModelBundleError(path.string() + ": write failed (disk full?)");
-    }
+  try {
+    WriteFileAtomically(
+        path, std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
+  } catch (const std::runtime_error& e) {
+    throw ModelBundleError(e.what());
   }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) throw ModelBundleError(path.string() + ": cannot rename into place: " + ec.message());
   return bytes;
 }
 
