@@ -117,10 +117,9 @@ Json Daemon::CreateRun(const Json& request, bool* created) {
   RunConfig checked = config;
   if (checked.machine.uri.empty()) checked.machine.uri = "unset";
   if (checked.camera.uri.empty()) checked.camera.uri = "unset";
-  ProbePlan plan;
+  RunEngine::PlannedRun planned;
   try {
-    checked.Check();
-    plan = RunEngine::PlanRun(checked, &config_.limits);
+    planned = RunEngine::PlanRun(checked, &config_.limits);  // checks `checked` first
   } catch (const ConfigError&) {
     throw;
   } catch (const MeshError&) {
@@ -132,12 +131,13 @@ Json Daemon::CreateRun(const Json& request, bool* created) {
     // request's, not the daemon's failure.
     throw RequestError(e.what(), request);
   }
+  const ProbePlan& plan = planned.plan;
   *created = !plan_only;
   if (plan_only) return PlanSummary(plan, config);
   std::int64_t run_id = 0;
   {
     std::lock_guard lock(mutex_);
-    run_id = engine_->StoreRun(config, plan);
+    run_id = engine_->StoreRun(config, planned);
   }
   spdlog::info("created run {} ({}, {} probes)", run_id, config.name, plan.probes.size());
   hub_.Publish("state", {{"run", run_id}, {"state", "created"}});

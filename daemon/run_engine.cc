@@ -696,7 +696,7 @@ RunReport RunEngine::Wait() {
   return thread_report_;
 }
 
-ProbePlan RunEngine::PlanRun(const RunConfig& config, const SafetyLimits* limits) {
+RunEngine::PlannedRun RunEngine::PlanRun(const RunConfig& config, const SafetyLimits* limits) {
   config.Check();
   const RigGeometry rig = MakeRigGeometry(config.rig);
   ProbePlan plan;
@@ -718,14 +718,14 @@ ProbePlan RunEngine::PlanRun(const RunConfig& config, const SafetyLimits* limits
       throw ConfigError("the plan breaks a safety limit at " + *bad, "plan");
     }
   }
-  return plan;
+  return {std::move(plan), ToHex64(rig.sensor_mesh.Hash())};
 }
 
-std::int64_t RunEngine::StoreRun(const RunConfig& config, const ProbePlan& plan) {
+std::int64_t RunEngine::StoreRun(const RunConfig& config, const PlannedRun& planned) {
+  const ProbePlan& plan = planned.plan;
   RunDatabase db(database_, database_options_);
-  const RigGeometry rig = MakeRigGeometry(config.rig);
   const std::int64_t run_id =
-      db.CreateRun(RunConfigToJson(config).dump(), ToHex64(rig.sensor_mesh.Hash()), config.name);
+      db.CreateRun(RunConfigToJson(config).dump(), planned.sensor_mesh_hash, config.name);
   std::vector<ProbePlanEntry> entries;
   entries.reserve(plan.probes.size());
   for (const PlannedProbe& p : plan.probes) {
@@ -745,9 +745,9 @@ std::int64_t RunEngine::StoreRun(const RunConfig& config, const ProbePlan& plan)
 }
 
 std::int64_t RunEngine::CreateRun(const RunConfig& config, ProbePlan* plan_out) {
-  ProbePlan plan = PlanRun(config, limits_ ? &*limits_ : nullptr);
-  const std::int64_t run_id = StoreRun(config, plan);
-  if (plan_out) *plan_out = std::move(plan);
+  PlannedRun planned = PlanRun(config, limits_ ? &*limits_ : nullptr);
+  const std::int64_t run_id = StoreRun(config, planned);
+  if (plan_out) *plan_out = std::move(planned.plan);
   return run_id;
 }
 

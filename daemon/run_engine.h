@@ -116,13 +116,20 @@ class RunEngine {
   RunEngine(const RunEngine&) = delete;
   RunEngine& operator=(const RunEngine&) = delete;
 
+  // A run's plan and what storing it needs of the rig, so that the rig's geometry (a mesh file
+  // loaded, or a shape meshed) is built once per run created.
+  struct PlannedRun {
+    ProbePlan plan;
+    std::string sensor_mesh_hash;  // hex Hash() of the rig's sensor mesh
+  };
   // Validates the config and plans; with `limits`, every line of the plan is checked against them
   // (SafetyGuard::CheckPlan). No motion, nothing stored. Throws ConfigError (a limit broken,
   // naming the probe and the limit; or nothing reachable, with PlanAdvice's sentences) /
   // std::invalid_argument / MeshError.
-  static ProbePlan PlanRun(const RunConfig& config, const SafetyLimits* limits = nullptr);
-  // Stores run + plan (probe rows and the full plan as the "plan" artifact). Throws StorageError.
-  std::int64_t StoreRun(const RunConfig& config, const ProbePlan& plan);
+  static PlannedRun PlanRun(const RunConfig& config, const SafetyLimits* limits = nullptr);
+  // Stores run + plan (probe rows and the full plan as the "plan" artifact) for `config`, which
+  // `planned` was planned from. Throws StorageError.
+  std::int64_t StoreRun(const RunConfig& config, const PlannedRun& planned);
   // PlanRun (with the limits set by SetSafetyLimits, if any) then StoreRun. `plan_out` receives
   // the plan if given.
   std::int64_t CreateRun(const RunConfig& config, ProbePlan* plan_out = nullptr);

@@ -260,9 +260,9 @@ TEST_CASE(
     std::filesystem::create_directories(f.dir / "data");
     RunEngine engine(f.dir / "data" / "gs360.db");
     RunConfig config = f.config;
-    const ProbePlan plan = RunEngine::PlanRun(config);
+    const RunEngine::PlannedRun planned = RunEngine::PlanRun(config);
     config.name = "\x1b[2J\x1b[Hevil\xc2\x9b";
-    REQUIRE(engine.StoreRun(config, plan) == 1);
+    REQUIRE(engine.StoreRun(config, planned) == 1);
   }
   auto daemon = test::StartDaemonProcess(f);
   const std::string url = daemon->url();

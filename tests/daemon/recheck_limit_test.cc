@@ -62,7 +62,7 @@ VirtualRigCamera MakeRigCamera() {
   config.machine.uri = "unset";
   config.camera.uri = "unset";
   VirtualRigCamera out;
-  out.plan = RunEngine::PlanRun(config);
+  out.plan = RunEngine::PlanRun(config).plan;
   out.rig = std::make_shared<const SimRig>(cli::SimRigOptionsFor(config.rig, 7));
   TactileCameraOptions options;
   options.sensor.seed = 7;
