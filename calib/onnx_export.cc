@@ -164,6 +164,61 @@ std::string AddFourierNodes(onnx::GraphProto* graph, const FourierFeatures& four
   return "fourier.features";
 }
 
+// The layers' Gemm and activation nodes after tensor `current`; the last layer's output is
+// named `last_output` (empty: "layerN.gemm"). Returns the last tensor's name.
+std::string AddLayerNodes(onnx::GraphProto* graph, const std::vector<Eigen::MatrixXd>& weights,
+                          const std::vector<Eigen::VectorXd>& biases, Activation activation,
+                          const std::string& last_output, std::string current) {
+  const std::size_t num_layers = weights.size();
+  for (std::size_t k = 0; k < num_layers; ++k) {
+    const std::string prefix = "layer" + std::to_string(k);
+    const bool last = k + 1 == num_layers;
+    AddInitializer(graph, prefix + ".weight", weights[k], false);
+    AddInitializer(graph, prefix + ".bias", biases[k], true);
+    const std::string gemm_out = (last && !last_output.empty()) ? last_output : prefix + ".gemm";
+    onnx::NodeProto* gemm = AddNode(graph, "Gemm", prefix + ".Gemm",
+                                    {current, prefix + ".weight", prefix + ".bias"}, gemm_out);
+    AddIntAttribute(gemm, "transB", 1);
+    current = gemm_out;
+    if (last) break;
+    const std::string act_out = prefix + ".act";
+    switch (activation) {
+      case Activation::kTanh:
+        AddNode(graph, "Tanh", prefix + ".Tanh", {current}, act_out);
+        break;
+      case Activation::kRelu:
+        AddNode(graph, "Relu", prefix + ".Relu", {current}, act_out);
+        break;
+      case Activation::kSilu:
+        AddNode(graph, "Sigmoid", prefix + ".Sigmoid", {current}, prefix + ".sigmoid");
+        AddNode(graph, "Mul", prefix + ".Mul", {current, prefix + ".sigmoid"}, act_out);
+        break;
+    }
+    current = act_out;
+  }
+  return current;
+}
+
+void AddModelMetadata(onnx::ModelProto& model, const Mlp& mlp, const OnnxExportOptions& options,
+                      bool fold_input) {
+  const std::vector<std::uint8_t> mlp_bytes = mlp.Serialize();
+  const FourierFeatures& fourier = mlp.fourier();
+  AddMetadata(model, "gs360_version", options.gs360_version);
+  AddMetadata(model, "model_name", options.model_name);
+  AddMetadata(model, "input_description", options.input_description);
+  AddMetadata(model, "output_description", options.output_description);
+  AddMetadata(model, "activation", std::string(ToString(mlp.activation())));
+  AddMetadata(model, "normalization",
+              fold_input
+                  ? "folded"
+                  : (options.fold_normalization ? "input explicit, output folded" : "explicit"));
+  AddMetadata(model, "fourier_features",
+              std::to_string(fourier.inputs) + " inputs x " + std::to_string(fourier.frequencies) +
+                  " frequencies, base " + std::to_string(fourier.base) +
+                  " rad per normalised unit");
+  AddMetadata(model, "mlp_checksum", HashHex(mlp_bytes.data(), mlp_bytes.size()));
+}
+
 }  // namespace
 
 std::vector<std::uint8_t> ExportMlpToOnnx(const Mlp& mlp, const OnnxExportOptions& options) {
@@ -226,33 +281,8 @@ std::vector<std::uint8_t> ExportMlpToOnnx(const Mlp& mlp, const OnnxExportOption
     current = "input_normalized";
   }
   if (fourier.Enabled()) current = AddFourierNodes(graph, fourier, in, current);
-  for (std::size_t k = 0; k < num_layers; ++k) {
-    const std::string prefix = "layer" + std::to_string(k);
-    const bool last = k + 1 == num_layers;
-    AddInitializer(graph, prefix + ".weight", weights[k], false);
-    AddInitializer(graph, prefix + ".bias", biases[k], true);
-    const std::string gemm_out =
-        (last && options.fold_normalization) ? options.output_name : prefix + ".gemm";
-    onnx::NodeProto* gemm = AddNode(graph, "Gemm", prefix + ".Gemm",
-                                    {current, prefix + ".weight", prefix + ".bias"}, gemm_out);
-    AddIntAttribute(gemm, "transB", 1);
-    current = gemm_out;
-    if (last) break;
-    const std::string act_out = prefix + ".act";
-    switch (mlp.activation()) {
-      case Activation::kTanh:
-        AddNode(graph, "Tanh", prefix + ".Tanh", {current}, act_out);
-        break;
-      case Activation::kRelu:
-        AddNode(graph, "Relu", prefix + ".Relu", {current}, act_out);
-        break;
-      case Activation::kSilu:
-        AddNode(graph, "Sigmoid", prefix + ".Sigmoid", {current}, prefix + ".sigmoid");
-        AddNode(graph, "Mul", prefix + ".Mul", {current, prefix + ".sigmoid"}, act_out);
-        break;
-    }
-    current = act_out;
-  }
+  current = AddLayerNodes(graph, weights, biases, mlp.activation(),
+                          options.fold_normalization ? options.output_name : "", current);
   if (!options.fold_normalization) {
     AddInitializer(graph, "output_scale", out_scale, true);
     AddInitializer(graph, "output_mean", out_mean, true);
@@ -260,21 +290,7 @@ std::vector<std::uint8_t> ExportMlpToOnnx(const Mlp& mlp, const OnnxExportOption
     AddNode(graph, "Add", "denormalize_add", {"output_scaled", "output_mean"}, options.output_name);
   }
 
-  const std::vector<std::uint8_t> mlp_bytes = mlp.Serialize();
-  AddMetadata(model, "gs360_version", options.gs360_version);
-  AddMetadata(model, "model_name", options.model_name);
-  AddMetadata(model, "input_description", options.input_description);
-  AddMetadata(model, "output_description", options.output_description);
-  AddMetadata(model, "activation", std::string(ToString(mlp.activation())));
-  AddMetadata(model, "normalization",
-              fold_input
-                  ? "folded"
-                  : (options.fold_normalization ? "input explicit, output folded" : "explicit"));
-  AddMetadata(model, "fourier_features",
-              std::to_string(fourier.inputs) + " inputs x " + std::to_string(fourier.frequencies) +
-                  " frequencies, base " + std::to_string(fourier.base) +
-                  " rad per normalised unit");
-  AddMetadata(model, "mlp_checksum", HashHex(mlp_bytes.data(), mlp_bytes.size()));
+  AddModelMetadata(model, mlp, options, fold_input);
 
   CheckModelProto(model);
   std::string bytes;

@@ -186,6 +186,38 @@ bool FollowConvergence(DaemonClient& client, std::int64_t id, int* plan_index_li
   return WatchCalibration(client, id, stdout)["state"] == "done";
 }
 
+// The demo's run on gs360d, created from its options; prints its id and plan. Returns the
+// API's answer (the run's "id" and "plan").
+Json CreateDemoRun(DaemonClient& client, const DemoOptions& o) {
+  // With --config the daemon's own [rig] is the sensor: the request names no shape.
+  Json run_request = {{"name", "demo-" + (o.sim.config.empty() ? o.shape : std::string("config"))},
+                      {"probes", o.probes},
+                      {"plan", {{"seed", o.seed}}}};
+  if (o.sim.config.empty()) run_request["shape"] = {{"type", o.shape}};
+  if (o.until_converged) run_request["until_converged"] = true;
+  const Json created = client.Post("/api/v1/runs", run_request);
+  const std::int64_t id = created["id"].get<std::int64_t>();
+  std::printf("created run %lld\n", static_cast<long long>(id));
+  PrintPlan(stdout, created["plan"]);
+  return created;
+}
+
+// What the probes pressed (or the whole plan, with instant motion) take on a real rig.
+void PrintRealMachineTime(const DemoOptions& o, const Json& run, const Json& plan,
+                          const std::filesystem::path& db, std::int64_t id) {
+  if (o.until_converged) {
+    std::printf(
+        "on a real rig at [plan.machine]'s feeds the %lld probes pressed take about %s "
+        "(the whole plan %s)\n",
+        static_cast<long long>(run.value("probes_done", 0) + run.value("probes_failed", 0)),
+        FormatDuration(PressedMachineSeconds(db, id)).c_str(),
+        FormatDuration(plan.value("estimate_s", 0.0)).c_str());
+  } else if (o.time_scale == 0.0) {
+    std::printf("on a real rig at [plan.machine]'s feeds the acquisition would take about %s\n",
+                FormatDuration(plan.value("estimate_s", 0.0)).c_str());
+  }
+}
+
 int RunDemo(const DemoOptions& o, RunConfig config) {
   const auto t0 = std::chrono::steady_clock::now();
   const std::filesystem::path dir = std::filesystem::absolute(
@@ -215,16 +247,8 @@ int RunDemo(const DemoOptions& o, RunConfig config) {
               daemon.url().c_str(), dir.c_str(), daemon.url().c_str());
 
   DaemonClient client(daemon.url(), "");
-  // With --config the daemon's own [rig] is the sensor: the request names no shape.
-  Json run_request = {{"name", "demo-" + (o.sim.config.empty() ? o.shape : std::string("config"))},
-                      {"probes", o.probes},
-                      {"plan", {{"seed", o.seed}}}};
-  if (o.sim.config.empty()) run_request["shape"] = {{"type", o.shape}};
-  if (o.until_converged) run_request["until_converged"] = true;
-  const Json created = client.Post("/api/v1/runs", run_request);
+  const Json created = CreateDemoRun(client, o);
   const std::int64_t id = created["id"].get<std::int64_t>();
-  std::printf("created run %lld\n", static_cast<long long>(id));
-  PrintPlan(stdout, created["plan"]);
   std::unique_ptr<RigFaultSchedule> faults = StartFaults(o.sim, rig, o.seed);
   if (faults) {
     std::printf("faults: %s, one every ~%.0f presses\n", o.sim.faults.c_str(), o.sim.fault_every);
@@ -262,17 +286,7 @@ int RunDemo(const DemoOptions& o, RunConfig config) {
   std::printf("demo finished in %s (acquisition %s); data in %s\n",
               FormatDuration(Since(t0)).c_str(), FormatDuration(acquisition_s).c_str(),
               dir.c_str());
-  if (o.until_converged) {
-    std::printf(
-        "on a real rig at [plan.machine]'s feeds the %lld probes pressed take about %s "
-        "(the whole plan %s)\n",
-        static_cast<long long>(run.value("probes_done", 0) + run.value("probes_failed", 0)),
-        FormatDuration(PressedMachineSeconds(dir / "gs360.db", id)).c_str(),
-        FormatDuration(created["plan"].value("estimate_s", 0.0)).c_str());
-  } else if (o.time_scale == 0.0) {
-    std::printf("on a real rig at [plan.machine]'s feeds the acquisition would take about %s\n",
-                FormatDuration(created["plan"].value("estimate_s", 0.0)).c_str());
-  }
+  PrintRealMachineTime(o, run, created["plan"], dir / "gs360.db", id);
   return acquired && calibrated && stopped == 0 ? kExitOk : kExitError;
 }
 

@@ -197,6 +197,8 @@ struct HttpApi::Impl {
   bool Screen(const Request& req, Response& res);
   void Routes();
   void RunRoutes();
+  // POST /api/v1/runs/ID/ACTION (start, pause, resume, cancel, calibrate).
+  void RunAction(const Request& req, Response& res);
   void FileRoutes();
   void EventStream(const Request& req, Response& res);
   int port = 0;
@@ -344,35 +346,9 @@ void HttpApi::Impl::RunRoutes() {
       SendAction(res, *id, r);
     });
   });
-  server.Route("POST", R"(/api/v1/runs/([^/]+)/(start|pause|resume|cancel|calibrate))",
-               [this](const Request& req, Response& res) {
-                 Guarded(res, [&] {
-                   const auto id = ParseId(req.matches[1]);
-                   if (!id) {
-                     return SendError(res, 404, "not_found",
-                                      "no run " + std::string(req.matches[1]));
-                   }
-                   const Json body = ParseBody(req, config.max_body_bytes);
-                   const std::string action = req.matches[2];
-                   std::string confirm;
-                   if (action == "start" || action == "resume") {
-                     JsonReader reader(body, "request");
-                     reader.Get("confirm", confirm);
-                     reader.RejectUnknown();
-                   } else if (action != "calibrate" && !body.empty()) {
-                     throw ConfigError(
-                         "request body: " + action + " takes no fields, got " + body.begin().key(),
-                         body.begin().key());
-                   }
-                   ActionResult r;
-                   if (action == "start") r = daemon.Start(*id, confirm);
-                   if (action == "pause") r = daemon.Pause(*id);
-                   if (action == "resume") r = daemon.Resume(*id, confirm);
-                   if (action == "cancel") r = daemon.Cancel(*id);
-                   if (action == "calibrate") r = daemon.Calibrate(*id, body);
-                   SendAction(res, *id, r);
-                 });
-               });
+  server.Route(
+      "POST", R"(/api/v1/runs/([^/]+)/(start|pause|resume|cancel|calibrate))",
+      [this](const Request& req, Response& res) { Guarded(res, [&] { RunAction(req, res); }); });
   server.Route(
       "GET", R"(/api/v1/runs/([^/]+)/probes)",
       [this](const Request& req, Response& res) {
@@ -406,6 +382,29 @@ void HttpApi::Impl::RunRoutes() {
         });
       },
       Lane::kSlow);
+}
+
+void HttpApi::Impl::RunAction(const Request& req, Response& res) {
+  const auto id = ParseId(req.matches[1]);
+  if (!id) return SendError(res, 404, "not_found", "no run " + std::string(req.matches[1]));
+  const Json body = ParseBody(req, config.max_body_bytes);
+  const std::string action = req.matches[2];
+  std::string confirm;
+  if (action == "start" || action == "resume") {
+    JsonReader reader(body, "request");
+    reader.Get("confirm", confirm);
+    reader.RejectUnknown();
+  } else if (action != "calibrate" && !body.empty()) {
+    throw ConfigError("request body: " + action + " takes no fields, got " + body.begin().key(),
+                      body.begin().key());
+  }
+  ActionResult r;
+  if (action == "start") r = daemon.Start(*id, confirm);
+  if (action == "pause") r = daemon.Pause(*id);
+  if (action == "resume") r = daemon.Resume(*id, confirm);
+  if (action == "cancel") r = daemon.Cancel(*id);
+  if (action == "calibrate") r = daemon.Calibrate(*id, body);
+  SendAction(res, *id, r);
 }
 
 void HttpApi::Impl::FileRoutes() {

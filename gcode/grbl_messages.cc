@@ -213,109 +213,114 @@ std::string SanitizeGrblLine(std::string_view bytes) {
   return std::string(t);
 }
 
+namespace {
+
+// "error:N" or "ALARM:N" (`s` starts with one of them).
+void ParseErrorOrAlarm(std::string_view s, GrblMessage* msg) {
+  const bool error = s[0] == 'e';
+  msg->kind = error ? GrblMessageKind::kError : GrblMessageKind::kAlarm;
+  const std::string_view rest = Trim(s.substr(6));
+  const auto code = ParseNumber<int>(rest);
+  msg->code = code.value_or(-1);
+  // A non-numeric code (GRBL 0.9 style "error: Bad number format") is still an error reply:
+  // it must resolve its line or the character count would drift.
+  msg->text = code ? (error ? GrblErrorText(*code) : GrblAlarmText(*code)) : std::string(rest);
+}
+
+// "$N=value" (a setting) or "$Nn=line" (a startup line); `s` starts with '$'.
+void ParseSettingLine(std::string_view s, GrblMessage* msg) {
+  msg->kind = GrblMessageKind::kUnknown;
+  const auto eq = s.find('=');
+  if (eq == std::string_view::npos || eq <= 1) return;
+  const std::string_view key = s.substr(1, eq - 1);
+  const std::string_view value = s.substr(eq + 1);
+  if (key[0] == 'N' && key.size() > 1) {
+    if (const auto n = ParseNumber<int>(key.substr(1))) {
+      msg->kind = GrblMessageKind::kStartupLineSetting;
+      msg->setting = *n;
+      msg->text = std::string(value);
+    }
+  } else if (const auto n = ParseNumber<int>(key)) {
+    msg->kind = GrblMessageKind::kSetting;
+    msg->setting = *n;
+    // GRBL 0.9 appended "(description)" after the value.
+    const std::string_view v = Trim(value.substr(0, value.find(" (")));
+    msg->text = std::string(v);
+    msg->setting_value = ParseNumber<double>(v);
+  }
+}
+
+// ">line:ok" or ">line:error:N", a startup line's result; `s` starts with '>'.
+void ParseStartupLineResult(std::string_view s, GrblMessage* msg) {
+  const std::string_view body = s.substr(1);
+  if (EndsWith(body, ":ok")) {
+    msg->kind = GrblMessageKind::kStartupLineResult;
+    msg->text = std::string(body.substr(0, body.size() - 3));
+    msg->code = 0;
+    return;
+  }
+  const auto e = body.rfind(":error:");
+  if (e != std::string_view::npos) {
+    if (const auto code = ParseNumber<int>(body.substr(e + 7))) {
+      msg->kind = GrblMessageKind::kStartupLineResult;
+      msg->text = std::string(body.substr(0, e));
+      msg->code = *code;
+      return;
+    }
+  }
+  msg->kind = GrblMessageKind::kUnknown;
+}
+
+// Welcome: "Grbl 1.1h ['$' for help]", "GrblHAL 1.1f ['$' or '$HELP' for help]",
+// "Grbl 3.7 [FluidNC v3.7.8 (wifi) '$' for help]". Searched anywhere in the line, because a
+// reset is what the client must never miss, even behind noise. Anything else is kUnknown.
+void ParseWelcomeOrUnknown(std::string_view s, GrblMessage* msg) {
+  msg->kind = GrblMessageKind::kUnknown;
+  const auto g = s.find("Grbl");
+  if (g == std::string_view::npos || !EndsWith(s, "for help]")) return;
+  const std::string_view rest = s.substr(g);
+  const auto sp = rest.find(' ');
+  if (sp == std::string_view::npos) return;
+  const std::string_view after = rest.substr(sp + 1);
+  const auto sp2 = after.find(' ');
+  msg->kind = GrblMessageKind::kWelcome;
+  msg->name = std::string(rest.substr(0, sp));
+  msg->version = std::string(after.substr(0, sp2));
+  msg->text = sp2 == std::string_view::npos ? std::string() : std::string(after.substr(sp2 + 1));
+}
+
+}  // namespace
+
 GrblMessage ParseGrblLine(std::string_view line) {
   GrblMessage msg;
   msg.raw = SanitizeGrblLine(line);
   const std::string_view s = msg.raw;
   if (s.empty()) {
     msg.kind = GrblMessageKind::kEmpty;
-    return msg;
-  }
-  if (s == "ok") {
+  } else if (s == "ok") {
     msg.kind = GrblMessageKind::kOk;
-    return msg;
-  }
-  if (StartsWith(s, "error:") || StartsWith(s, "ALARM:")) {
-    const bool error = s[0] == 'e';
-    msg.kind = error ? GrblMessageKind::kError : GrblMessageKind::kAlarm;
-    const std::string_view rest = Trim(s.substr(6));
-    const auto code = ParseNumber<int>(rest);
-    msg.code = code.value_or(-1);
-    // A non-numeric code (GRBL 0.9 style "error: Bad number format") is still an error reply:
-    // it must resolve its line or the character count would drift.
-    msg.text = code ? (error ? GrblErrorText(*code) : GrblAlarmText(*code)) : std::string(rest);
-    return msg;
-  }
-  if (s.front() == '<') {
+  } else if (StartsWith(s, "error:") || StartsWith(s, "ALARM:")) {
+    ParseErrorOrAlarm(s, &msg);
+  } else if (s.front() == '<') {
     if (s.back() == '>' && ParseStatus(s.substr(1, s.size() - 2), &msg)) {
       msg.kind = GrblMessageKind::kStatus;
     } else {
       msg.kind = GrblMessageKind::kUnknown;
       msg.status = GrblStatusReport{};
     }
-    return msg;
-  }
-  if (s.front() == '[') {
+  } else if (s.front() == '[') {
     if (s.back() == ']') {
       ParseBracket(s.substr(1, s.size() - 2), &msg);
     } else {
       msg.kind = GrblMessageKind::kUnknown;
     }
-    return msg;
+  } else if (s.front() == '$') {
+    ParseSettingLine(s, &msg);
+  } else if (s.front() == '>') {
+    ParseStartupLineResult(s, &msg);
+  } else {
+    ParseWelcomeOrUnknown(s, &msg);
   }
-  if (s.front() == '$') {
-    const auto eq = s.find('=');
-    if (eq != std::string_view::npos && eq > 1) {
-      const std::string_view key = s.substr(1, eq - 1);
-      const std::string_view value = s.substr(eq + 1);
-      if (key[0] == 'N' && key.size() > 1) {
-        if (const auto n = ParseNumber<int>(key.substr(1))) {
-          msg.kind = GrblMessageKind::kStartupLineSetting;
-          msg.setting = *n;
-          msg.text = std::string(value);
-          return msg;
-        }
-      } else if (const auto n = ParseNumber<int>(key)) {
-        msg.kind = GrblMessageKind::kSetting;
-        msg.setting = *n;
-        // GRBL 0.9 appended "(description)" after the value.
-        const std::string_view v = Trim(value.substr(0, value.find(" (")));
-        msg.text = std::string(v);
-        msg.setting_value = ParseNumber<double>(v);
-        return msg;
-      }
-    }
-    msg.kind = GrblMessageKind::kUnknown;
-    return msg;
-  }
-  if (s.front() == '>') {
-    const std::string_view body = s.substr(1);
-    if (EndsWith(body, ":ok")) {
-      msg.kind = GrblMessageKind::kStartupLineResult;
-      msg.text = std::string(body.substr(0, body.size() - 3));
-      msg.code = 0;
-      return msg;
-    }
-    const auto e = body.rfind(":error:");
-    if (e != std::string_view::npos) {
-      if (const auto code = ParseNumber<int>(body.substr(e + 7))) {
-        msg.kind = GrblMessageKind::kStartupLineResult;
-        msg.text = std::string(body.substr(0, e));
-        msg.code = *code;
-        return msg;
-      }
-    }
-    msg.kind = GrblMessageKind::kUnknown;
-    return msg;
-  }
-  // Welcome: "Grbl 1.1h ['$' for help]", "GrblHAL 1.1f ['$' or '$HELP' for help]",
-  // "Grbl 3.7 [FluidNC v3.7.8 (wifi) '$' for help]". Searched anywhere in the line, because a
-  // reset is what the client must never miss, even behind noise.
-  const auto g = s.find("Grbl");
-  if (g != std::string_view::npos && EndsWith(s, "for help]")) {
-    const std::string_view rest = s.substr(g);
-    const auto sp = rest.find(' ');
-    if (sp != std::string_view::npos) {
-      const std::string_view after = rest.substr(sp + 1);
-      const auto sp2 = after.find(' ');
-      msg.kind = GrblMessageKind::kWelcome;
-      msg.name = std::string(rest.substr(0, sp));
-      msg.version = std::string(after.substr(0, sp2));
-      msg.text = sp2 == std::string_view::npos ? std::string() : std::string(after.substr(sp2 + 1));
-      return msg;
-    }
-  }
-  msg.kind = GrblMessageKind::kUnknown;
   return msg;
 }
 

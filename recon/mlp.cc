@@ -126,6 +126,66 @@ void PutVector(ByteWriter& w, const Eigen::VectorXf& v) {
   w.PutArray(v.data(), static_cast<std::size_t>(v.size()));
 }
 
+// Scales read from a blob: each must be > 0 (a model divides by them).
+void CheckPositiveScales(const Eigen::VectorXf& scale, const char* what) {
+  for (Eigen::Index i = 0; i < scale.size(); ++i) {
+    if (!(scale[i] > 0.0f)) {
+      throw std::runtime_error("Mlp::Deserialize: " + std::string(what) + "[" + std::to_string(i) +
+                               "] = " + std::to_string(scale[i]) + " is not > 0");
+    }
+  }
+}
+
+Activation ActivationFromCode(std::uint32_t code) {
+  switch (code) {
+    case 0:
+      return Activation::kTanh;
+    case 1:
+      return Activation::kRelu;
+    case 2:
+      return Activation::kSilu;
+    default:
+      throw std::runtime_error("Mlp::Deserialize: unknown activation code " + std::to_string(code));
+  }
+}
+
+// The blob is exactly `expected` bytes long and its last 8 are the checksum of the rest.
+void CheckLengthAndChecksum(std::span<const std::uint8_t> bytes, std::size_t expected) {
+  if (bytes.size() < expected) {
+    throw std::runtime_error("Mlp::Deserialize: truncated data: " + std::to_string(bytes.size()) +
+                             " bytes, the header announces " + std::to_string(expected));
+  }
+  if (bytes.size() > expected) {
+    throw std::runtime_error("Mlp::Deserialize: " + std::to_string(bytes.size() - expected) +
+                             " trailing bytes after the model");
+  }
+  std::uint64_t stored = 0;
+  std::memcpy(&stored, bytes.data() + expected - sizeof(stored), sizeof(stored));
+  const std::uint64_t actual = Hasher().Add(bytes.data(), expected - sizeof(stored)).Digest();
+  if (stored != actual) {
+    throw std::runtime_error("Mlp::Deserialize: checksum mismatch (stored " + ToHex64(stored) +
+                             ", computed " + ToHex64(actual) + "): corrupt data");
+  }
+}
+
+// The layer sizes after the header's count: each in [1, kMaxLayerWidth].
+std::vector<int> ReadLayerSizes(ByteReader& r) {
+  const auto count = r.Get<std::uint32_t>("layer count");
+  if (count < 2 || count > kMaxSizesCount) {
+    throw std::runtime_error("Mlp::Deserialize: bad size count " + std::to_string(count));
+  }
+  std::vector<int> sizes(count);
+  for (std::uint32_t i = 0; i < count; ++i) {
+    const auto s = r.Get<std::int32_t>("sizes");
+    if (s < 1 || s > kMaxLayerWidth) {
+      throw std::runtime_error("Mlp::Deserialize: bad size[" + std::to_string(i) +
+                               "] = " + std::to_string(s));
+    }
+    sizes[i] = s;
+  }
+  return sizes;
+}
+
 }  // namespace
 
 std::string_view ToString(Activation a) {
@@ -313,20 +373,9 @@ Mlp Mlp::Deserialize(std::span<const std::uint8_t> bytes) {
                              " (supported: 1, " + std::to_string(kFormatVersion) + ")");
   }
   const auto activation_code = r.Get<std::uint32_t>("activation");
-  const auto count = r.Get<std::uint32_t>("layer count");
-  if (count < 2 || count > kMaxSizesCount) {
-    throw std::runtime_error("Mlp::Deserialize: bad size count " + std::to_string(count));
-  }
-  std::vector<int> sizes(count);
+  const std::vector<int> sizes = ReadLayerSizes(r);
+  const auto count = static_cast<std::uint32_t>(sizes.size());
   std::size_t floats = 0;
-  for (std::uint32_t i = 0; i < count; ++i) {
-    const auto s = r.Get<std::int32_t>("sizes");
-    if (s < 1 || s > kMaxLayerWidth) {
-      throw std::runtime_error("Mlp::Deserialize: bad size[" + std::to_string(i) +
-                               "] = " + std::to_string(s));
-    }
-    sizes[i] = s;
-  }
   FourierFeatures fourier;
   if (version >= 2) {
     fourier.inputs = r.Get<std::int32_t>("fourier inputs");
@@ -346,36 +395,8 @@ Mlp Mlp::Deserialize(std::span<const std::uint8_t> bytes) {
     floats += static_cast<std::size_t>(sizes[i + 1]) * (static_cast<std::size_t>(layer_in) + 1);
   }
   const std::size_t expected = r.pos() + floats * sizeof(float) + sizeof(std::uint64_t);
-  if (bytes.size() < expected) {
-    throw std::runtime_error("Mlp::Deserialize: truncated data: " + std::to_string(bytes.size()) +
-                             " bytes, the header announces " + std::to_string(expected));
-  }
-  if (bytes.size() > expected) {
-    throw std::runtime_error("Mlp::Deserialize: " + std::to_string(bytes.size() - expected) +
-                             " trailing bytes after the model");
-  }
-  std::uint64_t stored = 0;
-  std::memcpy(&stored, bytes.data() + expected - sizeof(stored), sizeof(stored));
-  const std::uint64_t actual = Hasher().Add(bytes.data(), expected - sizeof(stored)).Digest();
-  if (stored != actual) {
-    throw std::runtime_error("Mlp::Deserialize: checksum mismatch (stored " + ToHex64(stored) +
-                             ", computed " + ToHex64(actual) + "): corrupt data");
-  }
-  Activation activation;
-  switch (activation_code) {
-    case 0:
-      activation = Activation::kTanh;
-      break;
-    case 1:
-      activation = Activation::kRelu;
-      break;
-    case 2:
-      activation = Activation::kSilu;
-      break;
-    default:
-      throw std::runtime_error("Mlp::Deserialize: unknown activation code " +
-                               std::to_string(activation_code));
-  }
+  CheckLengthAndChecksum(bytes, expected);
+  const Activation activation = ActivationFromCode(activation_code);
   Mlp mlp;
   mlp.sizes_ = sizes;
   mlp.activation_ = activation;
@@ -390,18 +411,8 @@ Mlp Mlp::Deserialize(std::span<const std::uint8_t> bytes) {
   GetFiniteFloats(r, mlp.input_scale_.data(), in, "input scale");
   GetFiniteFloats(r, mlp.output_mean_.data(), out, "output mean");
   GetFiniteFloats(r, mlp.output_scale_.data(), out, "output scale");
-  for (int i = 0; i < in; ++i) {
-    if (!(mlp.input_scale_[i] > 0.0f)) {
-      throw std::runtime_error("Mlp::Deserialize: input scale[" + std::to_string(i) +
-                               "] = " + std::to_string(mlp.input_scale_[i]) + " is not > 0");
-    }
-  }
-  for (int i = 0; i < out; ++i) {
-    if (!(mlp.output_scale_[i] > 0.0f)) {
-      throw std::runtime_error("Mlp::Deserialize: output scale[" + std::to_string(i) +
-                               "] = " + std::to_string(mlp.output_scale_[i]) + " is not > 0");
-    }
-  }
+  CheckPositiveScales(mlp.input_scale_, "input scale");
+  CheckPositiveScales(mlp.output_scale_, "output scale");
   mlp.layers_.resize(count - 1);
   for (std::uint32_t k = 0; k + 1 < count; ++k) {
     const std::string name = "layer " + std::to_string(k);

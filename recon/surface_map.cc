@@ -283,8 +283,9 @@ std::vector<std::uint8_t> SurfaceMap::Serialize() const {
   return std::move(w.bytes());
 }
 
-SurfaceMap SurfaceMap::Deserialize(std::span<const std::uint8_t> bytes) {
-  ByteReader r(bytes, "SurfaceMap::Deserialize");
+namespace {
+
+void ReadMagicAndVersion(ByteReader& r) {
   char magic[8];
   r.Bytes(magic, sizeof(magic), "magic");
   if (std::memcmp(magic, kMagic, sizeof(kMagic)) != 0) {
@@ -296,6 +297,56 @@ SurfaceMap SurfaceMap::Deserialize(std::span<const std::uint8_t> bytes) {
                              std::to_string(version) + " (this build reads version " +
                              std::to_string(kVersion) + ")");
   }
+}
+
+Rigid3d ReadPose(ByteReader& r) {
+  double pose[7];
+  for (double& x : pose) x = r.Get<double>("pose");
+  Rigid3d cam_from_sensor(Eigen::Quaterniond(pose[0], pose[1], pose[2], pose[3]),
+                          Eigen::Vector3d(pose[4], pose[5], pose[6]));
+  // Keep the stored rotation bit-exact (the constructor normalises, which may round).
+  cam_from_sensor.rotation = Eigen::Quaterniond(pose[0], pose[1], pose[2], pose[3]);
+  return cam_from_sensor;
+}
+
+SurfaceMapStats ReadStats(ByteReader& r) {
+  SurfaceMapStats stats;
+  stats.visible = r.Get<std::int32_t>("stats");
+  stats.fin = r.Get<std::int32_t>("stats");
+  stats.grazing = r.Get<std::int32_t>("stats");
+  stats.no_hit = r.Get<std::int32_t>("stats");
+  stats.outside = r.Get<std::int32_t>("stats");
+  stats.build_seconds = r.Get<double>("stats");
+  return stats;
+}
+
+// The checksum after the first `body` bytes, at the reader's position.
+void CheckChecksum(ByteReader& r, std::span<const std::uint8_t> bytes, std::size_t body) {
+  const auto stored = r.Get<std::uint64_t>("checksum");
+  Hasher h;
+  h.Add(bytes.data(), body);
+  if (h.Digest() != stored) {
+    throw std::runtime_error("SurfaceMap::Deserialize: checksum mismatch (stored " +
+                             ToHex64(stored) + ", computed " + ToHex64(h.Digest()) +
+                             "): the data is corrupted");
+  }
+}
+
+void CheckStatuses(const std::vector<SurfacePixel>& status) {
+  for (std::size_t i = 0; i < status.size(); ++i) {
+    if (static_cast<std::uint8_t>(status[i]) > static_cast<std::uint8_t>(SurfacePixel::kVisible)) {
+      throw std::runtime_error("SurfaceMap::Deserialize: bad pixel status " +
+                               std::to_string(static_cast<int>(status[i])) + " at index " +
+                               std::to_string(i));
+    }
+  }
+}
+
+}  // namespace
+
+SurfaceMap SurfaceMap::Deserialize(std::span<const std::uint8_t> bytes) {
+  ByteReader r(bytes, "SurfaceMap::Deserialize");
+  ReadMagicAndVersion(r);
   SurfaceMap map;
   map.width_ = r.Get<std::int32_t>("width");
   map.height_ = r.Get<std::int32_t>("height");
@@ -306,18 +357,8 @@ SurfaceMap SurfaceMap::Deserialize(std::span<const std::uint8_t> bytes) {
   map.options_.max_view_angle_deg = r.Get<double>("options");
   map.options_.fin_margin_px = r.Get<double>("options");
   map.options_.threads = r.Get<std::int32_t>("options");
-  double pose[7];
-  for (double& x : pose) x = r.Get<double>("pose");
-  map.cam_from_sensor_ = Rigid3d(Eigen::Quaterniond(pose[0], pose[1], pose[2], pose[3]),
-                                 Eigen::Vector3d(pose[4], pose[5], pose[6]));
-  // Keep the stored rotation bit-exact (the constructor normalises, which may round).
-  map.cam_from_sensor_.rotation = Eigen::Quaterniond(pose[0], pose[1], pose[2], pose[3]);
-  map.stats_.visible = r.Get<std::int32_t>("stats");
-  map.stats_.fin = r.Get<std::int32_t>("stats");
-  map.stats_.grazing = r.Get<std::int32_t>("stats");
-  map.stats_.no_hit = r.Get<std::int32_t>("stats");
-  map.stats_.outside = r.Get<std::int32_t>("stats");
-  map.stats_.build_seconds = r.Get<double>("stats");
+  map.cam_from_sensor_ = ReadPose(r);
+  map.stats_ = ReadStats(r);
 
   const std::size_t n =
       static_cast<std::size_t>(map.width_) * static_cast<std::size_t>(map.height_);
@@ -339,29 +380,14 @@ SurfaceMap SurfaceMap::Deserialize(std::span<const std::uint8_t> bytes) {
   GetVector(r, map.t2_, 3 * n, "t2");
   GetVector(r, map.rho0_, n, "rho0");
   GetVector(r, map.view_angle_, n, "view_angle");
-  const std::size_t body = r.pos();
-  const auto stored = r.Get<std::uint64_t>("checksum");
-  Hasher h;
-  h.Add(bytes.data(), body);
-  if (h.Digest() != stored) {
-    throw std::runtime_error("SurfaceMap::Deserialize: checksum mismatch (stored " +
-                             ToHex64(stored) + ", computed " + ToHex64(h.Digest()) +
-                             "): the data is corrupted");
-  }
+  CheckChecksum(r, bytes, r.pos());
   try {
     map.options_.Check();
   } catch (const std::invalid_argument& e) {
     throw std::runtime_error(std::string("SurfaceMap::Deserialize: bad stored options: ") +
                              e.what());
   }
-  for (std::size_t i = 0; i < n; ++i) {
-    if (static_cast<std::uint8_t>(map.status_[i]) >
-        static_cast<std::uint8_t>(SurfacePixel::kVisible)) {
-      throw std::runtime_error("SurfaceMap::Deserialize: bad pixel status " +
-                               std::to_string(static_cast<int>(map.status_[i])) + " at index " +
-                               std::to_string(i));
-    }
-  }
+  CheckStatuses(map.status_);
   return map;
 }
 

@@ -132,113 +132,135 @@ std::string GrblSettings::Report() const {
   return os.str();
 }
 
-int GrblSettings::Store(int parameter, double value) {
-  if (value < 0.0) return kGrblNegativeValue;
-  // GRBL stores integer settings as uint8_t(trunc(value)).
-  const int int_value =
-      static_cast<int>(static_cast<std::uint8_t>(static_cast<long>(std::trunc(value)) & 0xFF));
-  if (parameter >= 100) {
-    const int group = (parameter - 100) / 10;
-    const int axis = (parameter - 100) % 10;
-    if (group > 3 || axis > 2) return kGrblInvalidStatement;
-    if (value == 0.0) return kGrblInvalidStatement;  // would break motion; see header
-    switch (group) {
-      case 0:
-        steps_per_mm[axis] = value;
-        break;
-      case 1:
-        max_rate_mm_per_min[axis] = value;
-        break;
-      case 2:
-        acceleration_mm_per_s2[axis] = value;
-        break;
-      default:
-        max_travel_mm[axis] = value;
-        break;
-    }
-    return kGrblOk;
+namespace {
+
+// $100-$132: steps, rates, accelerations and travels per axis.
+int StoreAxisSetting(GrblSettings& s, int parameter, double value) {
+  const int group = (parameter - 100) / 10;
+  const int axis = (parameter - 100) % 10;
+  if (group > 3 || axis > 2) return kGrblInvalidStatement;
+  if (value == 0.0) return kGrblInvalidStatement;  // would break motion; see header
+  switch (group) {
+    case 0:
+      s.steps_per_mm[axis] = value;
+      break;
+    case 1:
+      s.max_rate_mm_per_min[axis] = value;
+      break;
+    case 2:
+      s.acceleration_mm_per_s2[axis] = value;
+      break;
+    default:
+      s.max_travel_mm[axis] = value;
+      break;
   }
+  return kGrblOk;
+}
+
+// $0-$13: step pulses, signal inversions, reports, arcs.
+int StoreSignalSetting(GrblSettings& s, int parameter, double value, int int_value) {
   switch (parameter) {
     case 0:
       if (int_value < 3) return kGrblSettingStepPulseMin;
-      step_pulse_us = int_value;
+      s.step_pulse_us = int_value;
       break;
     case 1:
-      step_idle_delay_ms = int_value;
+      s.step_idle_delay_ms = int_value;
       break;
     case 2:
-      step_invert_mask = int_value;
+      s.step_invert_mask = int_value;
       break;
     case 3:
-      dir_invert_mask = int_value;
+      s.dir_invert_mask = int_value;
       break;
     case 4:
-      invert_step_enable = int_value != 0;
+      s.invert_step_enable = int_value != 0;
       break;
     case 5:
-      invert_limit_pins = int_value != 0;
+      s.invert_limit_pins = int_value != 0;
       break;
     case 6:
-      invert_probe_pin = int_value != 0;
+      s.invert_probe_pin = int_value != 0;
       break;
     case 10:
-      status_report_mask = int_value;
+      s.status_report_mask = int_value;
       break;
     case 11:
-      junction_deviation_mm = value;
+      s.junction_deviation_mm = value;
       break;
     case 12:
       if (value == 0.0) return kGrblInvalidStatement;
-      arc_tolerance_mm = value;
+      s.arc_tolerance_mm = value;
       break;
     case 13:
-      report_inches = int_value != 0;
-      break;
-    case 20:
-      if (int_value != 0) {
-        if (!homing_enable) return kGrblSoftLimitError;
-        soft_limits = true;
-      } else {
-        soft_limits = false;
-      }
-      break;
-    case 21:
-      hard_limits = int_value != 0;
-      break;
-    case 22:
-      homing_enable = int_value != 0;
-      if (!homing_enable) soft_limits = false;
-      break;
-    case 23:
-      homing_dir_mask = int_value;
-      break;
-    case 24:
-      if (value == 0.0) return kGrblInvalidStatement;
-      homing_feed_mm_per_min = value;
-      break;
-    case 25:
-      if (value == 0.0) return kGrblInvalidStatement;
-      homing_seek_mm_per_min = value;
-      break;
-    case 26:
-      homing_debounce_ms = int_value;
-      break;
-    case 27:
-      homing_pulloff_mm = value;
-      break;
-    case 30:
-      spindle_max_rpm = value;
-      break;
-    case 31:
-      spindle_min_rpm = value;
-      break;
-    case 32:
-      laser_mode = int_value != 0;
+      s.report_inches = int_value != 0;
       break;
     default:
       return kGrblInvalidStatement;
   }
   return kGrblOk;
+}
+
+// $20-$32: limits, homing, spindle.
+int StoreHomingSetting(GrblSettings& s, int parameter, double value, int int_value) {
+  switch (parameter) {
+    case 20:
+      if (int_value != 0) {
+        if (!s.homing_enable) return kGrblSoftLimitError;
+        s.soft_limits = true;
+      } else {
+        s.soft_limits = false;
+      }
+      break;
+    case 21:
+      s.hard_limits = int_value != 0;
+      break;
+    case 22:
+      s.homing_enable = int_value != 0;
+      if (!s.homing_enable) s.soft_limits = false;
+      break;
+    case 23:
+      s.homing_dir_mask = int_value;
+      break;
+    case 24:
+      if (value == 0.0) return kGrblInvalidStatement;
+      s.homing_feed_mm_per_min = value;
+      break;
+    case 25:
+      if (value == 0.0) return kGrblInvalidStatement;
+      s.homing_seek_mm_per_min = value;
+      break;
+    case 26:
+      s.homing_debounce_ms = int_value;
+      break;
+    case 27:
+      s.homing_pulloff_mm = value;
+      break;
+    case 30:
+      s.spindle_max_rpm = value;
+      break;
+    case 31:
+      s.spindle_min_rpm = value;
+      break;
+    case 32:
+      s.laser_mode = int_value != 0;
+      break;
+    default:
+      return kGrblInvalidStatement;
+  }
+  return kGrblOk;
+}
+
+}  // namespace
+
+int GrblSettings::Store(int parameter, double value) {
+  if (value < 0.0) return kGrblNegativeValue;
+  if (parameter >= 100) return StoreAxisSetting(*this, parameter, value);
+  // GRBL stores integer settings as uint8_t(trunc(value)).
+  const int int_value =
+      static_cast<int>(static_cast<std::uint8_t>(static_cast<long>(std::trunc(value)) & 0xFF));
+  if (parameter < 20) return StoreSignalSetting(*this, parameter, value, int_value);
+  return StoreHomingSetting(*this, parameter, value, int_value);
 }
 
 }  // namespace gs360
