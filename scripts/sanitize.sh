@@ -240,8 +240,10 @@ for w in "${which[@]}"; do
         test_sanitized asan "$asan_include" "${asan_exclude[@]}" || status=1
       ;;
     tsan)
+      # Its few test files each on their own: batched, they would make unity batches that no
+      # other build compiles (GS360_UNITY_TESTS; a helper's name clash would show only here).
       build_sanitized tsan thread "$tsan_targets" \
-        -DGS360_TEST_SOURCES="$(IFS=';' && echo "${tsan_sources[*]}")"
+        -DGS360_TEST_SOURCES="$(IFS=';' && echo "${tsan_sources[*]}")" -DGS360_UNITY_TESTS=OFF
       if [ $build_only = 0 ]; then
         check_selection "$parent/build-tsan" "${tsan_tests[@]}" || status=1
         test_sanitized tsan "$(join "${tsan_tests[@]}")" || status=1

@@ -19,7 +19,7 @@ namespace {
 using gs360::test::kDeg;
 
 // A square plate at z = `z` (sensor frame), normal facing -z (toward a camera at the origin).
-TriangleMesh Plate(double z, double half) {
+TriangleMesh PlateFacingCamera(double z, double half) {
   TriangleMesh m;
   m.vertices = {{-half, -half, z}, {half, -half, z}, {half, half, z}, {-half, half, z}};
   // (v1 - v0) x (v2 - v0) must be -z: wind clockwise seen from -z... (0,1,2) gives +z, so flip.
@@ -56,7 +56,7 @@ TEST_CASE("SurfaceMapOptions::Check names the bad field", "[surface_map]") {
 
 TEST_CASE("Surface map of a flat plate: rho0, n0, tangent frame, view angle", "[surface_map]") {
   const FisheyeCamera camera;
-  const Bvh plate(Plate(10.0, 100.0));
+  const Bvh plate(PlateFacingCamera(10.0, 100.0));
   SurfaceMapOptions options;
   options.max_view_angle_deg = 60.0;
   options.threads = 2;
@@ -283,7 +283,7 @@ TEST_CASE("Surface map of the cylinder sensor: fins excluded and dilated, grazin
   // Nothing visible: a pose with the camera looking down, away from the finger.
   const Rigid3d away = Rigid3d::FromAxisAngle(Eigen::Vector3d::UnitX(), std::numbers::pi,
                                               Eigen::Vector3d(0, 0, -1.5));
-  const Bvh plate_only(Plate(10.0, 5.0));
+  const Bvh plate_only(PlateFacingCamera(10.0, 5.0));
   REQUIRE_THROWS_AS(SurfaceMap::Build(camera, away, plate_only, nullptr), std::runtime_error);
 }
 
