@@ -75,8 +75,8 @@ asan_exclude=(
   '^capture:PressCheck: frames without an impression pass at the false-accept rate$'
   "^sim:tactile camera: a dwell's frames reuse the patch"
 )
-# With these left out the ASan + UBSan tests take about 1,100 s of CPU on 1,730 (under 10 min on
-# two cores, loaded).
+# With these left out the ASan + UBSan tests take 290 s on the two cores (a fresh clone's CI,
+# docs/benchmarks.md "CI time").
 # TSan: the tests whose code runs threads, by name: a TSan process takes 2-5 s to start and a
 # run on the virtual rig ~1 min, so rather than whole modules these, one or a few per threaded
 # part (the others exercise the same threads again, or none):
