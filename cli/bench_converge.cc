@@ -26,9 +26,9 @@
 #include "cli/commands.h"
 #include "cli/sim_bridge.h"
 #include "cli/sim_truth.h"
-#include "daemon/calibration_inputs.h"
 #include "daemon/convergence.h"
-#include "daemon/run_engine.h"
+#include "run/calibration_inputs.h"
+#include "run/run_engine.h"
 
 namespace gs360::cli {
 namespace {

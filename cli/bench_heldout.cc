@@ -27,8 +27,8 @@
 #include "cli/sim_args.h"
 #include "cli/sim_bridge.h"
 #include "cli/sim_truth.h"
-#include "daemon/calibration_inputs.h"
-#include "daemon/run_engine.h"
+#include "run/calibration_inputs.h"
+#include "run/run_engine.h"
 #include "sim/tactile_camera.h"
 #include "sim/virtual_rig.h"
 

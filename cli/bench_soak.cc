@@ -20,7 +20,7 @@
 #include "cli/commands.h"
 #include "cli/sim_args.h"
 #include "cli/sim_bridge.h"
-#include "daemon/run_engine.h"
+#include "run/run_engine.h"
 #include "storage/run_database.h"
 
 namespace gs360::cli {

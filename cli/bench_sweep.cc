@@ -30,8 +30,8 @@
 #include "cli/daemon_client.h"
 #include "cli/sim_bridge.h"
 #include "cli/sim_truth.h"
-#include "daemon/calibration_inputs.h"
-#include "daemon/run_engine.h"
+#include "run/calibration_inputs.h"
+#include "run/run_engine.h"
 #include "sim/virtual_rig.h"
 
 namespace gs360::cli {

@@ -8,8 +8,8 @@
 #include <vector>
 
 #include "calib/pipeline.h"
-#include "daemon/calibration_inputs.h"
-#include "daemon/run_config.h"
+#include "run/calibration_inputs.h"
+#include "run/run_config.h"
 #include "storage/run_database.h"
 
 namespace gs360::cli {

@@ -13,7 +13,7 @@
 #include "cli/report.h"
 #include "cli/sim_args.h"
 #include "cli/sim_bridge.h"
-#include "daemon/run_engine.h"
+#include "run/run_engine.h"
 #include "sim/virtual_rig.h"
 
 namespace gs360::cli {

@@ -22,10 +22,10 @@
 #include "cli/sim_args.h"
 #include "cli/sim_bridge.h"
 #include "cli/sim_truth.h"
-#include "daemon/calibration_inputs.h"
 #include "daemon/daemon_config.h"
-#include "daemon/run_engine.h"
 #include "gcode/grbl_client.h"
+#include "run/calibration_inputs.h"
+#include "run/run_engine.h"
 #include "sim/virtual_rig.h"
 
 namespace gs360::cli {

@@ -23,7 +23,7 @@
 #include <string>
 
 #include "cli/sim_args.h"
-#include "daemon/run_config.h"
+#include "run/run_config.h"
 
 namespace gs360::cli {
 

@@ -6,7 +6,7 @@
 #include <cstdio>
 #include <string>
 
-#include "daemon/run_engine.h"
+#include "run/run_engine.h"
 
 namespace gs360::cli {
 

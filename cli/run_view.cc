@@ -9,8 +9,8 @@
 #include "base/text.h"
 #include "calib/report.h"
 #include "cli/progress.h"
-#include "daemon/run_engine.h"
 #include "gcode/grbl_client.h"
+#include "run/run_engine.h"
 
 namespace gs360::cli {
 namespace {

@@ -12,7 +12,7 @@
 
 #include <CLI/CLI.hpp>
 
-#include "daemon/run_config.h"
+#include "run/run_config.h"
 #include "sim/rig_faults.h"
 #include "sim/virtual_rig.h"
 

@@ -7,9 +7,9 @@
 #include <functional>
 #include <memory>
 
-#include "daemon/run_config.h"
-#include "daemon/run_engine.h"
 #include "rig/rig_config.h"
+#include "run/run_config.h"
+#include "run/run_engine.h"
 #include "sim/virtual_rig.h"
 
 namespace gs360::cli {

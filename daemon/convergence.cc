@@ -9,9 +9,9 @@
 
 #include "base/format.h"
 #include "calib/report.h"
-#include "daemon/calibration_inputs.h"
 #include "daemon/calibration_jobs.h"
 #include "daemon/event_hub.h"
+#include "run/calibration_inputs.h"
 
 namespace gs360 {
 namespace {

@@ -17,8 +17,8 @@
 
 #include <nlohmann/json.hpp>
 
-#include "daemon/run_config.h"
-#include "daemon/run_engine.h"
+#include "run/run_config.h"
+#include "run/run_engine.h"
 #include "storage/run_database.h"
 
 namespace gs360 {

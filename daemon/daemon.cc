@@ -14,11 +14,11 @@
 #include "base/hash.h"
 #include "base/json_reader.h"
 #include "base/version.h"
-#include "daemon/calibration_inputs.h"
 #include "daemon/calibration_jobs.h"
 #include "daemon/convergence.h"
 #include "daemon/daemon_util.h"
 #include "geometry/mesh.h"
+#include "run/calibration_inputs.h"
 
 namespace gs360 {
 namespace {

@@ -40,7 +40,7 @@
 #include "daemon/instance_lock.h"
 #include "daemon/notifier.h"
 #include "daemon/notify_feed.h"
-#include "daemon/run_engine.h"
+#include "run/run_engine.h"
 
 namespace gs360 {
 

@@ -16,8 +16,8 @@
 #include <vector>
 
 #include "daemon/notifier.h"
-#include "daemon/run_config.h"
-#include "daemon/safety.h"
+#include "run/run_config.h"
+#include "run/safety.h"
 
 namespace gs360 {
 

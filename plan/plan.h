@@ -104,7 +104,7 @@ struct PlanOptions {
   // again until it does; probe_count is then only the first draw. 0: exactly probe_count
   // candidates (the default here; gs360d's configuration defaults to kDefaultMachineHours). An
   // explicit probe count (a request's "probes", a [plan] probe_count without machine_hours)
-  // reads as 0 (daemon/run_config.h).
+  // reads as 0 (run/run_config.h).
   double machine_hours = 0.0;
   // If true, probe_count counts KEPT probes: the blue-noise sampler draws candidates only where
   // every filter passes (drop counts then count rejected candidate draws).

@@ -10,8 +10,8 @@
 #include <string>
 
 #include "cli/sim_args.h"
-#include "daemon/calibration_inputs.h"
 #include "daemon/daemon_config.h"
+#include "run/calibration_inputs.h"
 #include "sim/tactile_camera.h"
 #include "storage/run_database.h"
 #include "tests/cli/run_gs360.h"

@@ -8,16 +8,16 @@
 #include <thread>
 
 #include "base/json_reader.h"
-#include "daemon/calibration_inputs.h"
 #include "daemon/daemon.h"
 #include "daemon/daemon_config.h"
 #include "daemon/event_hub.h"
 #include "daemon/instance_lock.h"
-#include "daemon/run_engine.h"
-#include "daemon/run_session.h"
-#include "daemon/safety.h"
 #include "gcode/probe_program.h"
 #include "rig_fixture.h"
+#include "run/calibration_inputs.h"
+#include "run/run_engine.h"
+#include "run/run_session.h"
+#include "run/safety.h"
 
 using namespace gs360;
 

@@ -22,8 +22,8 @@
 #include <nlohmann/json.hpp>
 
 #include "cli_runner.h"
-#include "daemon/run_engine.h"
 #include "daemon_fixture.h"
+#include "run/run_engine.h"
 #include "tests/wait.h"
 
 using namespace gs360;

@@ -13,8 +13,8 @@
 
 #include "capture/impression.h"
 #include "cli/sim_bridge.h"
-#include "daemon/run_config.h"
-#include "daemon/run_engine.h"
+#include "run/run_config.h"
+#include "run/run_engine.h"
 #include "sim/rig_model.h"
 #include "sim/tactile_camera.h"
 

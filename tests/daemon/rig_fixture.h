@@ -13,8 +13,8 @@
 #include <string>
 
 #include "cli/sim_bridge.h"
-#include "daemon/run_config.h"
-#include "daemon/run_engine.h"
+#include "run/run_config.h"
+#include "run/run_engine.h"
 #include "sim/virtual_rig.h"
 #include "storage/run_database.h"
 #include "tests/wait.h"

@@ -6,8 +6,8 @@
 
 #include "base/json_reader.h"
 #include "daemon/daemon_config.h"
-#include "daemon/run_config.h"
 #include "rig_fixture.h"
+#include "run/run_config.h"
 
 using namespace gs360;
 

@@ -1,4 +1,4 @@
-#include "daemon/safety.h"
+#include "run/safety.h"
 
 #include <algorithm>
 #include <charconv>

@@ -11,8 +11,8 @@
 
 #include "base/format.h"
 #include "capture/impression.h"
-#include "daemon/run_session.h"
 #include "gcode/open_machine.h"
+#include "run/run_session.h"
 
 namespace gs360 {
 

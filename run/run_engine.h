@@ -23,7 +23,7 @@
 //   is finished, retracted and committed first; the run becomes interrupted / paused / cancelled
 //   / done (a cancelled or finished run also parks the tool at the plan's start position; a
 //   finished one skips what is left of its plan);
-// - a line that breaks the safety limits (SetSafetyLimits, daemon/safety.h): it is not sent, the
+// - a line that breaks the safety limits (SetSafetyLimits, run/safety.h): it is not sent, the
 //   run stops (interrupted, kFailed) naming the line and the limit.
 // Nothing committed is ever lost or probed again. On resume, Execute() first re-presses up to
 // engine.recheck_probes committed probes and measures how far their impressions lie from the
@@ -56,9 +56,9 @@
 #include <string>
 #include <thread>
 
-#include "daemon/run_config.h"
-#include "daemon/safety.h"
 #include "plan/plan.h"
+#include "run/run_config.h"
+#include "run/safety.h"
 #include "storage/run_database.h"
 
 namespace gs360 {

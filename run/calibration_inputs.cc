@@ -1,4 +1,4 @@
-#include "daemon/calibration_inputs.h"
+#include "run/calibration_inputs.h"
 
 #include <algorithm>
 #include <stdexcept>

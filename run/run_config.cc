@@ -1,4 +1,4 @@
-#include "daemon/run_config.h"
+#include "run/run_config.h"
 
 #include <stdexcept>
 #include <string_view>

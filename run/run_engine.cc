@@ -1,6 +1,6 @@
-#include "daemon/run_engine.h"
+#include "run/run_engine.h"
 #include "base/format.h"
-#include "daemon/run_session.h"
+#include "run/run_session.h"
 
 #include <algorithm>
 #include <chrono>

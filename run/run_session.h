@@ -1,6 +1,6 @@
 #pragma once
-// The run engine's session (one RunEngine::Execute() call): private to daemon/run_engine.cc and
-// daemon/run_recovery.cc, not part of any public contract.
+// The run engine's session (one RunEngine::Execute() call): private to run/run_engine.cc and
+// run/run_recovery.cc, not part of any public contract.
 
 #include <chrono>
 #include <cmath>
@@ -18,10 +18,10 @@
 #include "capture/impression.h"
 #include "capture/impression_regions.h"
 #include "capture/press_check.h"
-#include "daemon/run_engine.h"
 #include "gcode/machine.h"
 #include "gcode/probe_program.h"
 #include "geometry/fisheye.h"
+#include "run/run_engine.h"
 #include "storage/capture_committer.h"
 
 namespace gs360 {

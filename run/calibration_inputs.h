@@ -6,7 +6,7 @@
 #include <filesystem>
 
 #include "calib/pipeline.h"
-#include "daemon/run_config.h"
+#include "run/run_config.h"
 #include "storage/run_database.h"
 
 namespace gs360 {
