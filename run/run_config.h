@@ -45,7 +45,7 @@ struct EngineConfig {
   // Impression shift (MeasureImpressionShift, capture/impression.h) that means the sensor moved.
   // The same press captured twice, each against its own reference and under other noise and LED
   // drift, lands at most 0.20 px apart on the virtual rig (14,058 pairs over 213 probes: median
-  // 0.02, 99.9th percentile 0.16 px; tests/daemon/recheck_limit_test.cc): the limit is about 5x
+  // 0.02, 99.9th percentile 0.16 px; tests/run/recheck_limit_test.cc): the limit is about 5x
   // (4.9x) that worst case, about 0.17 mm of sideways sensor move (5.9 px/mm at the median probe).
   double recheck_max_shift_px = 1.0;
   // Only clear impressions are compared: a peak colour difference of at least this many DN

@@ -25,7 +25,7 @@ jobs=${JOBS:-$(nproc)}
 # browser and format tests never run here: they exercise no C++ that the C++ tests do not.
 #
 # ASan + UBSan: the unit tests of the libraries, less the few that repeat one workload for
-# minutes (times: under ASan + UBSan on the 2-core VM). Not the cli: and daemon: tests: they run
+# minutes (times: under ASan + UBSan on the 2-core VM). Not the cli:, run: and daemon: tests: they run
 # the whole pipeline end to end (1-6 min each under ASan) and would need gs360_cli, gs360_daemon,
 # gs360 and gs360d built a third time; the daemon's code runs under TSan below.
 asan_targets="test_base test_geometry test_storage test_plan test_gcode test_sim test_capture test_recon test_calib"

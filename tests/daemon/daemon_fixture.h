@@ -11,7 +11,7 @@
 #include "cli/daemon_process.h"
 #include "daemon/daemon.h"
 #include "daemon/http_api.h"
-#include "rig_fixture.h"
+#include "tests/run/rig_fixture.h"
 // After Eigen: <resolv.h>, which httplib.h includes, defines a macro `_res` that Eigen's product
 // kernels use as a parameter name.
 #include <httplib.h>

@@ -13,11 +13,11 @@
 #include "daemon/event_hub.h"
 #include "daemon/instance_lock.h"
 #include "gcode/probe_program.h"
-#include "rig_fixture.h"
 #include "run/calibration_inputs.h"
 #include "run/run_engine.h"
 #include "run/run_session.h"
 #include "run/safety.h"
+#include "tests/run/rig_fixture.h"
 
 using namespace gs360;
 
