@@ -5,7 +5,6 @@
 
 #include <nlohmann/json.hpp>
 
-#include "base/json_reader.h"
 #include "plan/plan.h"
 
 namespace gs360 {
@@ -56,15 +55,6 @@ CalibrationInputs CalibrationInputsFor(const RunDatabase& db, std::int64_t run_i
     }
   }
   return in;
-}
-
-RunConfig StoredRunConfig(const RunDatabase& db, std::int64_t run_id) {
-  const auto run = db.GetRun(run_id);
-  if (!run) {
-    throw std::runtime_error("no run " + std::to_string(run_id) + " in " + db.path().string());
-  }
-  const std::string where = db.path().string() + ": run " + std::to_string(run_id);
-  return RunConfigFromJson(ParseJsonText(run->config_json, where), where);
 }
 
 }  // namespace gs360

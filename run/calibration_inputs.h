@@ -22,7 +22,4 @@ CalibrationInputs CalibrationInputsFor(const RunConfig& config,
 CalibrationInputs CalibrationInputsFor(const RunDatabase& db, std::int64_t run_id,
                                        const std::filesystem::path& checkerboard_dir = {});
 
-// The run's stored configuration. Throws std::runtime_error naming the run and the database.
-RunConfig StoredRunConfig(const RunDatabase& db, std::int64_t run_id);
-
 }  // namespace gs360

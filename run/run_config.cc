@@ -8,6 +8,7 @@
 #include "base/format.h"
 #include "base/json_reader.h"
 #include "base/text.h"
+#include "storage/run_database.h"
 
 namespace gs360 {
 namespace {
@@ -405,6 +406,15 @@ RunConfig RunConfigFromJson(const nlohmann::json& json, const std::string& where
 
 RunConfig LoadRunConfigFile(const std::string& path) {
   return RunConfigFromJson(ParseJsonFile(path), path);
+}
+
+RunConfig StoredRunConfig(const RunDatabase& db, std::int64_t run_id) {
+  const auto run = db.GetRun(run_id);
+  if (!run) {
+    throw std::runtime_error("no run " + std::to_string(run_id) + " in " + db.path().string());
+  }
+  const std::string where = db.path().string() + ": run " + std::to_string(run_id);
+  return RunConfigFromJson(ParseJsonText(run->config_json, where), where);
 }
 
 }  // namespace gs360

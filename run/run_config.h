@@ -4,6 +4,7 @@
 
 #include <chrono>
 #include <cstddef>
+#include <cstdint>
 #include <string>
 
 #include <nlohmann/json_fwd.hpp>
@@ -138,5 +139,10 @@ void ReadProbeCount(JsonReader& reader, const char* key, PlanOptions& plan);
 RunConfig RunConfigFromJson(const nlohmann::json& json, const std::string& where);
 // A JSON file; syntax errors name the line and column.
 RunConfig LoadRunConfigFile(const std::string& path);
+
+class RunDatabase;
+// A stored run's configuration. Throws std::runtime_error naming the run and the database when
+// it has no such run, ConfigError naming them when its stored configuration is not valid.
+RunConfig StoredRunConfig(const RunDatabase& db, std::int64_t run_id);
 
 }  // namespace gs360
