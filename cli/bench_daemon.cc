@@ -212,6 +212,25 @@ void Loaded(const std::string& url, const DaemonBenchOptions& o, double seconds,
   stretch.seconds += s.seconds;
 }
 
+// The figures as text: latency, the crowd, the pause, the rate with and without clients.
+void PrintDaemonBench(const DaemonBenchOptions& o, const Load& load, double quiet, double loaded,
+                      double loss) {
+  std::printf("bench daemon: %lld status requests (%lld failed), %lld events received\n",
+              static_cast<long long>(load.requests), static_cast<long long>(load.failures),
+              static_cast<long long>(load.events));
+  std::printf("  status latency       p50 %.2f ms, p99 %.2f ms, max %.2f ms (target p99 < 50)\n",
+              Percentile(load.latency_ms, 0.5), Percentile(load.latency_ms, 0.99),
+              Percentile(load.latency_ms, 1.0));
+  std::printf(
+      "  in the crowd         %d of %d event streams open, %d idle sockets, %d slow "
+      "senders (%lld cut off and reopened)\n",
+      load.streams_open, o.streams, o.idle, o.slow, static_cast<long long>(load.reconnects));
+  std::printf("  pause answered in    %.1f ms (target < 1000)\n", load.pause_ms);
+  std::printf("  probes per hour      %.0f without clients, %.0f with (%d cycles of each)\n", quiet,
+              loaded, o.cycles);
+  std::printf("  with clients         %.2f %% fewer than quiet (target <= 2 %%)\n", loss);
+}
+
 int RunDaemonBench(const DaemonBenchOptions& o, bool json) {
   // The crowd's sockets, and the daemon's (its own limit it raises itself).
   rlimit files{};
@@ -287,20 +306,7 @@ int RunDaemonBench(const DaemonBenchOptions& o, bool json) {
   if (json) {
     std::printf("%s\n", figures.dump(2).c_str());
   } else {
-    std::printf("bench daemon: %lld status requests (%lld failed), %lld events received\n",
-                static_cast<long long>(load.requests), static_cast<long long>(load.failures),
-                static_cast<long long>(load.events));
-    std::printf("  status latency       p50 %.2f ms, p99 %.2f ms, max %.2f ms (target p99 < 50)\n",
-                Percentile(load.latency_ms, 0.5), Percentile(load.latency_ms, 0.99),
-                Percentile(load.latency_ms, 1.0));
-    std::printf(
-        "  in the crowd         %d of %d event streams open, %d idle sockets, %d slow "
-        "senders (%lld cut off and reopened)\n",
-        load.streams_open, o.streams, o.idle, o.slow, static_cast<long long>(load.reconnects));
-    std::printf("  pause answered in    %.1f ms (target < 1000)\n", load.pause_ms);
-    std::printf("  probes per hour      %.0f without clients, %.0f with (%d cycles of each)\n",
-                quiet, loaded, o.cycles);
-    std::printf("  with clients         %.2f %% fewer than quiet (target <= 2 %%)\n", loss);
+    PrintDaemonBench(o, load, quiet, loaded, loss);
   }
   return figures["pass"].get<bool>() ? kExitOk : kExitError;
 }

@@ -285,6 +285,34 @@ std::string SweepRecommendation(const std::vector<std::vector<std::string>>& row
 
 namespace {
 
+// A new CSV's header line (the key columns, then the results); an existing CSV is kept.
+void WriteCsvHeader(const std::filesystem::path& out) {
+  if (std::filesystem::exists(out)) return;
+  std::ofstream header(out);
+  header << kKeyColumns;
+  for (const std::string& c : ResultColumns()) header << "," << c;
+  header << "\n";
+  if (!header.flush()) throw std::runtime_error("cannot write " + out.string());
+}
+
+// `--json`: every row of the CSV by column name, the plot and the recommendation.
+void PrintSweepJson(const std::filesystem::path& out, const std::filesystem::path& plot,
+                    const std::vector<std::vector<std::string>>& rows, const std::string& advice) {
+  Json j = Json::array();
+  std::vector<std::string> names = SplitCsv(kKeyColumns);
+  for (const std::string& col : ResultColumns()) names.push_back(col);
+  for (const auto& row : rows) {
+    Json r = Json::object();
+    for (std::size_t k = 0; k < names.size() && k < row.size(); ++k) r[names[k]] = row[k];
+    j.push_back(r);
+  }
+  std::printf(
+      "%s\n",
+      Json{{"csv", out.string()}, {"plot", plot.string()}, {"rows", j}, {"recommendation", advice}}
+          .dump(2)
+          .c_str());
+}
+
 int RunSweep(const SweepArgs& a, const CommandContext& ctx) {
   const std::filesystem::path out = std::filesystem::absolute(a.out);
   const std::string stem = (out.parent_path() / out.stem()).string();
@@ -304,13 +332,7 @@ int RunSweep(const SweepArgs& a, const CommandContext& ctx) {
   }
   std::filesystem::create_directories(work);
   std::filesystem::create_directories(out.parent_path());
-  if (!std::filesystem::exists(out)) {
-    std::ofstream header(out);
-    header << kKeyColumns;
-    for (const std::string& c : ResultColumns()) header << "," << c;
-    header << "\n";
-    if (!header.flush()) throw std::runtime_error("cannot write " + out.string());
-  }
+  WriteCsvHeader(out);
   const auto t0 = Clock::now();
   std::string acquired_key;
   std::unique_ptr<Acquired> acquired;
@@ -346,20 +368,7 @@ int RunSweep(const SweepArgs& a, const CommandContext& ctx) {
   WriteSweepPlot(rows, plot);
   const std::string advice = SweepRecommendation(rows);
   if (ctx.json) {
-    Json j = Json::array();
-    std::vector<std::string> names = SplitCsv(kKeyColumns);
-    for (const std::string& col : ResultColumns()) names.push_back(col);
-    for (const auto& row : rows) {
-      Json r = Json::object();
-      for (std::size_t k = 0; k < names.size() && k < row.size(); ++k) r[names[k]] = row[k];
-      j.push_back(r);
-    }
-    std::printf(
-        "%s\n",
-        Json{
-            {"csv", out.string()}, {"plot", plot.string()}, {"rows", j}, {"recommendation", advice}}
-            .dump(2)
-            .c_str());
+    PrintSweepJson(out, plot, rows, advice);
   } else {
     std::printf("sweep: %zu rows in %s, plot %s\n%s", rows.size(), out.c_str(), plot.c_str(),
                 advice.c_str());

@@ -161,6 +161,41 @@ std::uint64_t Key(const Fingerprint& f) {
   return Hasher().Add(f.data(), f.size()).Digest();
 }
 
+// The undamaged served frames, and each window of k consecutive ones by its mean's hash.
+struct ServedWindows {
+  std::vector<std::size_t> clean;                              // indices into served
+  std::unordered_multimap<std::uint64_t, std::size_t> by_key;  // -> index in clean of the last
+};
+
+ServedWindows IndexWindows(const std::vector<ServedFrame>& served, int k) {
+  ServedWindows w;
+  for (std::size_t i = 0; i < served.size(); ++i) {
+    if (!served[i].corrupted) w.clean.push_back(i);
+  }
+  for (std::size_t end = static_cast<std::size_t>(k) - 1; end < w.clean.size(); ++end) {
+    w.by_key.emplace(Key(WindowMean(served, w.clean, end, k)), end);
+  }
+  return w;
+}
+
+// The served window with exactly the stored content (its last frame's index in clean); among
+// identical ones (a noise-free camera) the one whose time is nearest `hint` (steady seconds).
+std::optional<std::size_t> NearestWindow(const std::vector<ServedFrame>& served,
+                                         const ServedWindows& windows, const Fingerprint& stored,
+                                         int k, double hint) {
+  std::optional<std::size_t> match;
+  const auto& clean = windows.clean;
+  const auto [first, last] = windows.by_key.equal_range(Key(stored));
+  for (auto it = first; it != last; ++it) {
+    if (WindowMean(served, clean, it->second, k) != stored) continue;  // a hash collision
+    if (!match || std::abs(Seconds(served[clean[it->second]].timestamp) - hint) <
+                      std::abs(Seconds(served[clean[*match]].timestamp) - hint)) {
+      match = it->second;
+    }
+  }
+  return match;
+}
+
 }  // namespace
 
 void CaptureTruthOptions::Check() const {
@@ -193,14 +228,8 @@ CaptureTruth CheckCapturesAgainstTruth(const VirtualRig& rig, const RunDatabase&
   // and reads the next), by the hash of its rounded mean. A stored image with a damaged frame
   // averaged in matches none: unverified.
   const std::vector<ServedFrame> served = rig.ServedFrames();
-  std::vector<std::size_t> clean;  // indices into served
-  for (std::size_t i = 0; i < served.size(); ++i) {
-    if (!served[i].corrupted) clean.push_back(i);
-  }
-  std::unordered_multimap<std::uint64_t, std::size_t> windows;  // -> index in clean of the last
-  for (std::size_t end = static_cast<std::size_t>(k) - 1; end < clean.size(); ++end) {
-    windows.emplace(Key(WindowMean(served, clean, end, k)), end);
-  }
+  const ServedWindows windows = IndexWindows(served, k);
+  const std::vector<std::size_t>& clean = windows.clean;
 
   const VirtualCnc& cnc = rig.cnc();
   // The tool can stand only on whole steps: half a step on each axis from the press point is
@@ -214,16 +243,8 @@ CaptureTruth CheckCapturesAgainstTruth(const VirtualRig& rig, const RunDatabase&
     const Fingerprint stored = FrameFingerprint(db.LoadFrame(c.frame_id));
     // The served window with exactly this content; among identical ones (a noise-free camera),
     // the one nearest in time to where the check-time clock offset puts the stored frame.
-    std::optional<std::size_t> match;
-    const double hint = c.frame_time - check_offset;
-    const auto [first, last] = windows.equal_range(Key(stored));
-    for (auto it = first; it != last; ++it) {
-      if (WindowMean(served, clean, it->second, k) != stored) continue;  // a hash collision
-      if (!match || std::abs(Seconds(served[clean[it->second]].timestamp) - hint) <
-                        std::abs(Seconds(served[clean[*match]].timestamp) - hint)) {
-        match = it->second;
-      }
-    }
+    const std::optional<std::size_t> match =
+        NearestWindow(served, windows, stored, k, c.frame_time - check_offset);
     if (!match) {
       ++truth.unverified;
       truth.unverified_plan_indices.push_back(index);

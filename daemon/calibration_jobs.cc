@@ -183,31 +183,39 @@ bool CalibrationJobs::Start(std::int64_t run_id, const CalibrationInputs& inputs
   return true;
 }
 
+// A stage's progress message from the pipeline: "running" or "cached ..." starts the stage
+// (the one before is done), anything else is the current stage's message. Throws Stopped once
+// the daemon stops.
+void CalibrationJobs::OnStageMessage(Job& job, const std::string& stage,
+                                     const std::string& message) {
+  if (stop_) throw Stopped{};
+  std::lock_guard lock(mutex_);
+  const bool starts = message == "running" || message.rfind("cached", 0) == 0;
+  if (starts) {
+    if (job.current >= 0 && job.stages[job.current].state == "running") {
+      job.stages[job.current].state = "done";
+      job.stages[job.current].seconds =
+          std::chrono::duration<double>(Clock::now() - job.stage_start).count();
+    }
+    for (std::size_t i = 0; i < job.stages.size(); ++i) {
+      if (job.stages[i].name == stage) job.current = static_cast<int>(i);
+    }
+    job.stage_start = Clock::now();
+    if (job.current >= 0) {
+      job.stages[job.current].state = message == "running" ? "running" : "cached";
+    }
+    hub_.Publish("stage", {{"run", job.run_id},
+                           {"stage", stage},
+                           {"state", message == "running" ? "running" : "cached"}});
+    Save(job);
+  }
+  if (job.current >= 0 && !starts) job.stages[job.current].message = message;
+}
+
 void CalibrationJobs::Execute(std::shared_ptr<Job> job, CalibrationInputs inputs,
                               CalibrationOptions options) {
   const auto log = [&](const std::string& stage, const std::string& message) {
-    if (stop_) throw Stopped{};
-    std::lock_guard lock(mutex_);
-    const bool starts = message == "running" || message.rfind("cached", 0) == 0;
-    if (starts) {
-      if (job->current >= 0 && job->stages[job->current].state == "running") {
-        job->stages[job->current].state = "done";
-        job->stages[job->current].seconds =
-            std::chrono::duration<double>(Clock::now() - job->stage_start).count();
-      }
-      for (std::size_t i = 0; i < job->stages.size(); ++i) {
-        if (job->stages[i].name == stage) job->current = static_cast<int>(i);
-      }
-      job->stage_start = Clock::now();
-      if (job->current >= 0) {
-        job->stages[job->current].state = message == "running" ? "running" : "cached";
-      }
-      hub_.Publish("stage", {{"run", job->run_id},
-                             {"stage", stage},
-                             {"state", message == "running" ? "running" : "cached"}});
-      Save(*job);
-    }
-    if (job->current >= 0 && !starts) job->stages[job->current].message = message;
+    OnStageMessage(*job, stage, message);
   };
   std::string state = "done";
   std::string error;

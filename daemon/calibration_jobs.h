@@ -57,6 +57,7 @@ class CalibrationJobs {
  private:
   struct Job;
   void Execute(std::shared_ptr<Job> job, CalibrationInputs inputs, CalibrationOptions options);
+  void OnStageMessage(Job& job, const std::string& stage, const std::string& message);
   void Save(const Job& job) const;
   nlohmann::json ViewOf(const Job& job) const;
 
